@@ -1,0 +1,1 @@
+"""Evaluation: the ``symbio`` CLI, metrics, benchmarks and the paper's experiments."""

@@ -1,0 +1,48 @@
+"""The ``symbio`` command line: one entry point, one subcommand per job.
+
+Each package contributes subcommands through an ``add_parser(subparsers)`` function; they are
+imported here so ``symbio --help`` lists everything installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from frontends.errors import SymbioError
+
+#: Modules that contribute subcommands, in the order ``--help`` lists them.
+SUBCOMMAND_MODULES = ("frontends.synth.cli", "frontends.datasets.cli")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    import importlib
+
+    parser = argparse.ArgumentParser(
+        prog="symbio",
+        description="Monocular SLAM with SymbioLCD2 loop closure and a GTSAM pose-graph backend.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in SUBCOMMAND_MODULES:
+        importlib.import_module(name).add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        return int(args.handler(args) or 0)
+    except SymbioError as exc:
+        print(f"symbio: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The GTSAM pose-graph backend (see the issue tracker for the plan)."""

@@ -1,0 +1,40 @@
+"""One conftest: the ../shared fixture and the opt-in slow tests.
+
+Tests that need the read-only shared data take the ``shared`` fixture and carry
+``@pytest.mark.shared``; without the folder they skip, so ``make test`` passes on a user's machine.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def shared_root() -> Path:
+    return Path(os.environ.get("SYMBIO_SHARED", REPO_ROOT.parent / "shared")).resolve()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--runslow"):
+        return
+    skip_slow = pytest.mark.skip(reason="slow: run with --runslow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip_slow)
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    """The shared data folder (SYMBIO_SHARED, default ../shared); skips the test when absent."""
+    root = shared_root()
+    if not (root / "data").is_dir():
+        pytest.skip(f"shared data not found at {root} (set SYMBIO_SHARED)")
+    return root
