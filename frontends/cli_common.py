@@ -11,7 +11,9 @@ from typing import Any
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="PATH", type=Path, help="write the measured figures as a flat JSON object")
+    parser.add_argument(
+        "--json", metavar="PATH", type=Path, help="write the measured figures as a flat JSON object"
+    )
 
 
 def write_json(path: str | Path | None, figures: Mapping[str, Any]) -> None:

@@ -78,7 +78,11 @@ def _collect_key_lines(node: yaml.Node | None, prefix: str, lines: dict[str, int
 
 
 def apply_mapping(
-    config: T, mapping: Mapping[str, Any], source: str, lines: Mapping[str, int] | None = None, prefix: str = ""
+    config: T,
+    mapping: Mapping[str, Any],
+    source: str,
+    lines: Mapping[str, int] | None = None,
+    prefix: str = "",
 ) -> T:
     """Return ``config`` with the fields in ``mapping`` replaced, each checked against its type."""
     if not dataclasses.is_dataclass(config) or isinstance(config, type):
@@ -99,11 +103,11 @@ def apply_mapping(
             changes[key] = apply_mapping(current, value, source, lines, prefix=dotted + ".")
         else:
             changes[key] = coerce(value, hints[key], f"{where}: {dotted!r}")
-    return dataclasses.replace(config, **changes)  # type: ignore[type-var]
+    return dataclasses.replace(config, **changes)
 
 
 def coerce(value: Any, annotation: Any, what: str) -> Any:
-    """Check ``value`` against a field annotation; convert the few lossless cases (int -> float, list -> tuple)."""
+    """Check ``value`` against a field annotation; convert lossless cases (int -> float, list -> tuple)."""
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
     if origin in (typing.Union, types.UnionType):
@@ -149,6 +153,7 @@ def coerce(value: Any, annotation: Any, what: str) -> Any:
 
 def config_to_dict(config: Any) -> dict[str, Any]:
     """A plain dict of a (nested) config dataclass, tuples as lists: ready for YAML/JSON."""
+
     def plain(value: Any) -> Any:
         if isinstance(value, (list, tuple)):
             return [plain(v) for v in value]

@@ -90,7 +90,9 @@ def read_loop_pairs(path: str | Path, num_frames: int | None = None) -> np.ndarr
         k = int(np.flatnonzero((table != np.round(table)).any(axis=1))[0])
         raise DatasetError(path, "frame indices must be integers", int(lines[k]))
     pairs = table.astype(np.int64)
-    bad = np.flatnonzero((pairs < 0).any(axis=1) | ((pairs >= num_frames).any(axis=1) if num_frames else False))
+    bad = np.flatnonzero(
+        (pairs < 0).any(axis=1) | ((pairs >= num_frames).any(axis=1) if num_frames else False)
+    )
     if bad.size:
         k = int(bad[0])
         raise DatasetError(

@@ -38,8 +38,8 @@ class Registry(Generic[T]):
     def load(self, name: str) -> T:
         if name in self._builtins:
             module, _, attribute = self._builtins[name].partition(":")
-            return getattr(importlib.import_module(module), attribute)  # type: ignore[no-any-return]
+            return getattr(importlib.import_module(module), attribute)
         plugins = self._entry_points()
         if name in plugins:
-            return plugins[name].load()  # type: ignore[no-any-return]
+            return plugins[name].load()
         raise ConfigError(f"unknown {self.kind} {name!r}; installed: {', '.join(self.names())}")

@@ -1,8 +1,8 @@
 """Reading and writing TUM / KITTI trajectory files as evo trajectories.
 
 Reading validates every line first (column count, numbers, finite values, unit quaternions,
-increasing timestamps; a repeated timestamp keeps its first pose) so a malformed file fails with its path and line number; evo's own
-readers report neither. Writing uses evo's writers unchanged.
+increasing timestamps; a repeated timestamp keeps its first pose) so a malformed file fails with
+its path and line number; evo's own readers report neither. Writing uses evo's writers unchanged.
 """
 
 from __future__ import annotations
@@ -88,7 +88,8 @@ def check_increasing(
         kind = "duplicate" if steps[k - 1] == 0 else "decreasing"
         raise error(
             path,
-            f"{kind} timestamp {float(stamps[k])!r} (previous line {int(lines[k - 1])}: {float(stamps[k - 1])!r})",
+            f"{kind} timestamp {float(stamps[k])!r} "
+            f"(previous line {int(lines[k - 1])}: {float(stamps[k - 1])!r})",
             int(lines[k]),
         )
 
@@ -103,7 +104,9 @@ def drop_duplicate_stamps(path: str | Path, stamps: np.ndarray, lines: np.ndarra
     keep[1:] = np.diff(stamps) != 0
     if not keep.all():
         first = int(lines[np.flatnonzero(~keep)[0]])
-        log.warning("%s:%d: %d repeated timestamps, keeping the first pose of each", path, first, (~keep).sum())
+        log.warning(
+            "%s:%d: %d repeated timestamps, keeping the first pose of each", path, first, (~keep).sum()
+        )
     check_increasing(path, stamps[keep], lines[keep])
     return keep
 

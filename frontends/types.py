@@ -51,7 +51,7 @@ class CameraIntrinsics:
             )
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name of the calibration matrix
+    def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
@@ -66,7 +66,14 @@ class CameraIntrinsics:
         """The same camera for an image resized to ``width`` x ``height``."""
         sx, sy = width / self.width, height / self.height
         return CameraIntrinsics(
-            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.distortion, self.source
+            self.fx * sx,
+            self.fy * sy,
+            self.cx * sx,
+            self.cy * sy,
+            width,
+            height,
+            self.distortion,
+            self.source,
         )
 
     def as_dict(self) -> dict[str, object]:

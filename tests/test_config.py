@@ -82,7 +82,14 @@ def test_registry_lists_and_loads() -> None:
     ],
 )
 def test_camera_rejects_bad_values(kwargs: dict[str, object]) -> None:
-    values: dict[str, object] = {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
+    values: dict[str, object] = {
+        "fx": 500.0,
+        "fy": 500.0,
+        "cx": 320.0,
+        "cy": 240.0,
+        "width": 640,
+        "height": 480,
+    }
     values.update(kwargs)
     with pytest.raises(CalibrationError):
         CameraIntrinsics(**values)  # type: ignore[arg-type]

@@ -26,7 +26,9 @@ def test_second_lap_revisits_first() -> None:
     n = 200
     poses = _poses_on_circle(n, laps=1.5)
     stamps = np.arange(n, dtype=float)
-    pairs = label_loop_pairs(poses, stamps, LoopLabelConfig(max_distance=0.1, max_angle_deg=20, min_time_gap=50))
+    pairs = label_loop_pairs(
+        poses, stamps, LoopLabelConfig(max_distance=0.1, max_angle_deg=20, min_time_gap=50)
+    )
     assert len(pairs) > 0
     assert (pairs[:, 0] > pairs[:, 1]).all()
     # frame q on lap 2 revisits q - n/1.5 (one lap = 133.3 frames)
@@ -67,8 +69,9 @@ def test_pairs_file_round_trip_and_validation(tmp_path: Path) -> None:
 def test_kitti00_has_its_known_loops(shared: Path) -> None:
     data = shared / "data" / "trajectories"
     trajectory = read_kitti_poses(data / "KITTI_00_gt.txt", read_times(data / "KITTI_00_gt_times.txt"))
-    pairs = label_loop_pairs(np.array(trajectory.poses_se3), trajectory.timestamps,
-                             LoopLabelConfig(max_distance=5.0))
+    pairs = label_loop_pairs(
+        np.array(trajectory.poses_se3), trajectory.timestamps, LoopLabelConfig(max_distance=5.0)
+    )
     queries = np.unique(pairs[:, 0])
     # KITTI 00 revisits along several stretches late in the drive (~760 query frames at 5 m).
     assert 600 < len(queries) < 1000

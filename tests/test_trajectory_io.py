@@ -27,7 +27,9 @@ def test_tum_round_trip_matches_evo(tmp_path: Path) -> None:
     ours = read_tum(path)
     theirs = file_interface.read_tum_trajectory_file(str(path))
     np.testing.assert_allclose(ours.positions_xyz, theirs.positions_xyz)
-    np.testing.assert_allclose(np.abs(ours.orientations_quat_wxyz), np.abs(theirs.orientations_quat_wxyz), atol=1e-7)
+    np.testing.assert_allclose(
+        np.abs(ours.orientations_quat_wxyz), np.abs(theirs.orientations_quat_wxyz), atol=1e-7
+    )
     np.testing.assert_allclose(ours.timestamps, original.timestamps)
 
 

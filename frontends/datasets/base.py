@@ -52,7 +52,7 @@ def decode_image(path: Path) -> np.ndarray | None:
     if image is None or image.size == 0:
         return None
     if image.dtype == np.uint16:  # 16-bit PNG greyscale cameras: keep the high byte
-        image = (image >> 8).astype(np.uint8)
+        image = (image // 256).astype(np.uint8)
     elif image.dtype != np.uint8:
         return None
     if image.ndim == 3 and image.shape[2] == 4:
@@ -185,7 +185,9 @@ class Dataset:
             "distorted": self.camera.is_distorted,
             "intrinsics_source": self.camera.source,
             "has_groundtruth": self.has_groundtruth,
-            "gt_poses": 0 if self.gt_poses is None else int(np.isfinite(self.gt_poses).all(axis=(1, 2)).sum()),
+            "gt_poses": 0
+            if self.gt_poses is None
+            else int(np.isfinite(self.gt_poses).all(axis=(1, 2)).sum()),
             "gt_loop_pairs": 0 if pairs is None else len(pairs),
             "gt_loop_queries": 0 if pairs is None else len(np.unique(pairs[:, 0])),
             "gt_loop_pairs_source": source,
@@ -235,5 +237,7 @@ def check_listed_images_exist(entries: Sequence[ImageEntry], strict: bool) -> No
         raise DatasetError(missing[0].where(), f"listed image not found: {missing[0].path}")
     log.warning(
         "%d listed images are missing (first: %s, %s); they will be skipped",
-        len(missing), missing[0].where(), missing[0].path,
+        len(missing),
+        missing[0].where(),
+        missing[0].path,
     )

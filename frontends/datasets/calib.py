@@ -35,8 +35,11 @@ def read_yaml_file(path: Path, error: type[CalibrationError] = CalibrationError)
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        raise error(path, f"invalid YAML ({getattr(exc, 'problem', exc)})",
-                    mark.line + 1 if mark is not None else None) from None
+        raise error(
+            path,
+            f"invalid YAML ({getattr(exc, 'problem', exc)})",
+            mark.line + 1 if mark is not None else None,
+        ) from None
     if not isinstance(data, dict):
         raise error(path, "expected a mapping of calibration keys")
     return data
@@ -70,7 +73,9 @@ def intrinsics_from_mapping(
         fx, fy, cx, cy = _exactly(_numbers(data["intrinsics"], "intrinsics", path), 4, "intrinsics", path)
         distortion = _numbers(data.get("distortion_coefficients", []), "distortion_coefficients", path)
         size = data.get("resolution")
-        width, height = _exactly(_numbers(size, "resolution", path), 2, "resolution", path) if size else (0, 0)
+        width, height = (
+            _exactly(_numbers(size, "resolution", path), 2, "resolution", path) if size else (0, 0)
+        )
     elif "Camera.fx" in data or "Camera1.fx" in data:  # ORB-SLAM2/3 settings
         prefix = "Camera." if "Camera.fx" in data else "Camera1."
         fx, fy, cx, cy = (_number(data, prefix + k, path) for k in ("fx", "fy", "cx", "cy"))

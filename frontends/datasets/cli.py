@@ -15,7 +15,9 @@ from frontends.gt_loops import LoopLabelConfig
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset options every command that reads a dataset takes."""
     parser.add_argument("path", type=Path, help="dataset folder (or video file)")
-    parser.add_argument("--format", dest="fmt", choices=DATASET_FORMATS.names(), help="layout (default: detect)")
+    parser.add_argument(
+        "--format", dest="fmt", choices=DATASET_FORMATS.names(), help="layout (default: detect)"
+    )
     parser.add_argument("--calib", type=Path, help="intrinsics YAML (overrides the dataset's own)")
     parser.add_argument("--strict", action="store_true", help="an image that fails to decode is an error")
 
@@ -32,8 +34,14 @@ def add_parser(subparsers: Any) -> None:
     )
     add_dataset_arguments(info)
     info.add_argument("--loops-config", type=Path, help="YAML of LoopLabelConfig keys")
-    info.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                      help="override a LoopLabelConfig key (max_distance, max_angle_deg, min_time_gap)")
+    info.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a LoopLabelConfig key (max_distance, max_angle_deg, min_time_gap)",
+    )
     info.add_argument("--check-images", action="store_true", help="decode every image and count failures")
     add_json_option(info)
     info.set_defaults(handler=run_info)

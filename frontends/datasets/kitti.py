@@ -55,7 +55,7 @@ def read_projection_matrices(path: Path) -> dict[str, np.ndarray]:
         key = fields[0].rstrip(":") if fields[0].endswith(":") else f"P{len(matrices)}"
         values = fields[1:] if fields[0].endswith(":") else fields
         if len(values) != 12:
-            raise CalibrationError(path, f"{key}: expected 12 numbers (a 3x4 matrix), found {len(values)}", number)
+            raise CalibrationError(path, f"{key}: expected 12 numbers, found {len(values)}", number)
         try:
             matrix = np.array([float(v) for v in values]).reshape(3, 4)
         except ValueError:
@@ -70,15 +70,22 @@ def _image_folder(root: Path) -> Path:
     for name in IMAGE_FOLDERS:
         if (root / name).is_dir():
             return root / name
-    raise DatasetError(root, f"no image folder ({"/, ".join(IMAGE_FOLDERS)}/): not a KITTI sequence")
+    names = ", ".join(f"{name}/" for name in IMAGE_FOLDERS)
+    raise DatasetError(root, f"no image folder ({names}): not a KITTI sequence")
 
 
 def _poses_file(root: Path) -> Path | None:
     """``poses.txt`` of a clip, else ``../../poses/NN.txt`` of an official sequence, else None."""
+    root = root.resolve()  # so that "." still has a name and parents
     if (root / "poses.txt").is_file():
         return root / "poses.txt"
     official = root.parent.parent / "poses" / f"{root.name}.txt"
     return official if root.parent.name == "sequences" and official.is_file() else None
+
+
+def _check_count(path: Path, count: int, what: str, folder: Path, images: int) -> None:
+    if count != images:
+        raise DatasetError(path, f"{count} {what} (one per line) but {images} images in {folder.name}/")
 
 
 class KittiDataset(Dataset):
@@ -104,8 +111,7 @@ class KittiDataset(Dataset):
         times_file = root / "times.txt"
         if times_file.is_file():
             stamps = read_times(times_file, DatasetError)
-            if len(stamps) != len(images):
-                raise DatasetError(times_file, f"{len(stamps)} timestamps but {folder.name}/ has {len(images)} images")
+            _check_count(times_file, len(stamps), "timestamps", folder, len(images))
         else:
             stamps = np.arange(len(images)) / KITTI_FPS
             notes.append(f"no times.txt: frames {1 / KITTI_FPS:g} s apart (KITTI's {KITTI_FPS:g} Hz)")
@@ -121,8 +127,7 @@ class KittiDataset(Dataset):
         poses_file = _poses_file(root)
         if poses_file is not None:
             poses = np.asarray(read_kitti_poses(poses_file).poses_se3)
-            if len(poses) != len(images):
-                raise DatasetError(poses_file, f"{len(poses)} poses but {folder.name}/ has {len(images)} images")
+            _check_count(poses_file, len(poses), "poses", folder, len(images))
             gt_poses = poses
         else:
             notes.append("no ground truth (poses.txt or ../../poses/NN.txt)")
@@ -132,6 +137,7 @@ class KittiDataset(Dataset):
     def _camera(calib_file: Path, key: str, size: tuple[int, int]) -> CameraIntrinsics:
         matrices = read_projection_matrices(calib_file)
         if key not in matrices:
-            raise CalibrationError(calib_file, f"no {key} projection matrix (found {', '.join(matrices) or 'none'})")
-        p = matrices[key]
-        return CameraIntrinsics(p[0, 0], p[1, 1], p[0, 2], p[1, 2], size[0], size[1], (), f"{calib_file} {key}")
+            found = ", ".join(matrices) or "none"
+            raise CalibrationError(calib_file, f"no {key} projection matrix (found: {found})")
+        fx, fy, cx, cy = (float(matrices[key][i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+        return CameraIntrinsics(fx, fy, cx, cy, size[0], size[1], (), f"{calib_file} {key}")

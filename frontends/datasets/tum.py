@@ -37,7 +37,13 @@ log = logging.getLogger(__name__)
 #: TUM's published calibration of the three freiburg Kinects (fx, fy, cx, cy, k1, k2, p1, p2, k3).
 FREIBURG_INTRINSICS = {
     1: (517.306408, 516.469215, 318.643040, 255.313989, (0.262383, -0.953104, -0.005358, 0.002628, 1.163314)),
-    2: (520.908620, 521.007327, 325.141442, 249.701764, (0.231222, -0.784899, -0.003257, -0.000105, 0.917205)),
+    2: (
+        520.908620,
+        521.007327,
+        325.141442,
+        249.701764,
+        (0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+    ),
     # fr3 images were already undistorted by the Kinect driver (TUM: "use no distortion").
     3: (535.4, 539.2, 320.1, 247.6, ()),
 }
@@ -128,8 +134,10 @@ class TumDataset(Dataset):
             gt_poses = np.full((len(entries), 4, 4), np.nan)
             gt_poses[nearest >= 0] = poses[nearest[nearest >= 0]]
             if (nearest < 0).any():
-                notes.append(f"{int((nearest < 0).sum())} frames have no ground truth within "
-                             f"{MAX_GT_TIME_DIFFERENCE} s")
+                notes.append(
+                    f"{int((nearest < 0).sum())} frames have no ground truth within "
+                    f"{MAX_GT_TIME_DIFFERENCE} s"
+                )
         pairs = None
         if (root / "gt_loop_pairs.txt").is_file():
             pairs = read_loop_pairs(root / "gt_loop_pairs.txt", len(entries))
