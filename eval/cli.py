@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from frontends.errors import SymbioError
 
 #: Modules that contribute subcommands, in the order ``--help`` lists them.
-SUBCOMMAND_MODULES = ("frontends.synth.cli", "frontends.datasets.cli")
+SUBCOMMAND_MODULES = ("eval.demo", "frontends.synth.cli", "frontends.datasets.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,6 +37,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
+    # evo logs every file it writes at INFO; our commands report their outputs themselves.
+    logging.getLogger("evo").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     try:
         return int(args.handler(args) or 0)
     except SymbioError as exc:

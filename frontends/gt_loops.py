@@ -85,7 +85,7 @@ def first_departure(centres: np.ndarray, radius: float, chunk: int = 256) -> np.
 
 def read_loop_pairs(path: str | Path, num_frames: int | None = None) -> np.ndarray:
     """Read a ``query ref`` pairs file (0-based frame indices, ``#`` comments); validates indices."""
-    table, lines = read_numeric_table(path, 2, error=DatasetError)
+    table, lines = read_numeric_table(path, 2, error=DatasetError, allow_empty=True)
     if not np.all(table == np.round(table)):
         k = int(np.flatnonzero((table != np.round(table)).any(axis=1))[0])
         raise DatasetError(path, "frame indices must be integers", int(lines[k]))

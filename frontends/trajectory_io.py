@@ -27,6 +27,7 @@ def read_numeric_table(
     columns: int | Sequence[int],
     error: type[InputFileError] = TrajectoryFileError,
     delimiter: str | None = None,
+    allow_empty: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Parse a whitespace (or ``delimiter``) separated numeric table; ``#`` starts a comment line.
 
@@ -65,6 +66,8 @@ def read_numeric_table(
         rows.append(values)
         line_numbers.append(number)
     if not rows:
+        if allow_empty:
+            return np.zeros((0, min(allowed))), np.zeros(0, dtype=np.int64)
         raise error(path, "no data lines")
     return np.asarray(rows, dtype=np.float64), np.asarray(line_numbers)
 

@@ -60,6 +60,8 @@ def test_pairs_file_round_trip_and_validation(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_loop_pairs(path, 10), [[5, 1], [6, 2]])
     with pytest.raises(DatasetError, match=r"gt_loop_pairs\.txt:3: frame index out of range"):
         read_loop_pairs(path, 6)
+    write_loop_pairs(path, np.zeros((0, 2), dtype=int))  # a scene without loops
+    assert read_loop_pairs(path, 10).shape == (0, 2)
     path.write_text("5 1.5\n")
     with pytest.raises(DatasetError, match=r":1: frame indices must be integers"):
         read_loop_pairs(path)

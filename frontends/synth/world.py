@@ -1,0 +1,485 @@
+"""The synthetic scene's configuration and its world: a textured room with COCO-labelled cuboids.
+
+World frame: x east, y north, z up, floor at z=0, room centred on the origin. Every surface is a
+planar quad with its own texture, generated once from numpy Generators seeded by ``config.seed``
+(never OpenCV's global RNG), so a seed fixes the whole scene.
+
+Textures: a low-frequency colour field overlaid with random multi-scale shapes (rotated rectangles,
+triangles, circles, ellipses, outlines, lines) drawn anti-aliased in dark/bright colours against
+the background. Shape sizes are in metres, so the corner density seen by ORB is independent of the
+texture resolution, and since every wall is one non-repeating random canvas each place of the room
+looks different. Each texture is stored as an image pyramid; the renderer picks the level that
+matches the on-screen texel size, which keeps distant surfaces from aliasing.
+
+Objects: cuboids with COCO class names stand along the walls (floor and wall-mounted classes) or
+on dining tables (cups, bottles, books, laptops, keyboards). Textures are seeded by class label
+(``crc32``) and face shading is fixed in the object's own frame, so repeated instances of a class
+look identical: the perceptual aliasing a semantic loop detector must cope with. Movable objects
+("person") walk back and forth in lanes between the wall objects and the camera path; the
+detector is expected to drop them.
+
+Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): cameras
+within 0.6 m and 30 deg, at least 3 s apart, after the camera went 1.2 m (``leave_factor`` 2) away.
+The closest revisiting pose is typically 0.1-0.2 m and 10-24 deg off the first pass, well inside.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from frontends.errors import ConfigError
+from frontends.gt_loops import LoopLabelConfig
+from frontends.types import CameraIntrinsics
+
+TrajectoryKind = Literal["loop", "figure8", "out-and-back", "none"]
+TRAJECTORY_KINDS: tuple[TrajectoryKind, ...] = ("loop", "figure8", "out-and-back", "none")
+
+#: Distance from the walls to the camera path at full path scale (m): the wall objects (<= 1.15 m
+#: deep) and the person lanes (1.35 m) fit in between.
+WALL_CLEARANCE = 2.2
+#: Distance of the person lanes from the long walls (m).
+PERSON_LANE = 1.35
+
+
+def _room_loop_labels() -> LoopLabelConfig:
+    # Room scale (see the module docstring); the library defaults suit building-sized trajectories.
+    return LoopLabelConfig(max_distance=0.6, max_angle_deg=30.0, min_time_gap=3.0, leave_factor=2.0)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Every knob of a synthetic scene; ``load_config(SynthConfig, yaml, ["key=value"])`` overrides."""
+
+    seed: int = 0
+    trajectory: TrajectoryKind = "loop"
+    frames: int = 600
+    fps: float = 30.0
+    #: Timestamp of the first frame (s).
+    start_time: float = 1.0
+    width: int = 640
+    height: int = 480
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 319.5
+    cy: float = 239.5
+    #: Room extent along x, y and its height (m).
+    room_size: tuple[float, float, float] = (9.0, 7.0, 2.8)
+    static_objects: int = 14
+    movable_objects: int = 2
+    #: Target mean camera speed (m/s); met while the path scale is within its clamp range.
+    speed: float = 0.7
+    #: Laps of the loop and figure8 paths (the part beyond 1 revisits the start).
+    laps: float = 1.4
+    camera_height: float = 1.4
+    camera_pitch_deg: float = -8.0
+    #: Texture resolution of the walls (texels per metre); floor and ceiling use 2/3 and 1/2 of it.
+    wall_texels_per_m: float = 300.0
+    object_texels_per_m: float = 400.0
+    #: Standard deviation of the additive Gaussian sensor noise (grey levels).
+    noise_sigma: float = 2.0
+    #: Standard deviation of the Gaussian optical blur (pixels); 0 disables it.
+    blur_sigma: float = 0.6
+    #: Relative amplitude of the slow exposure (gain) oscillation.
+    exposure_amplitude: float = 0.12
+    exposure_period: float = 9.0
+    #: Objects with fewer visible pixels are left out of the ground truth.
+    min_visible_pixels: int = 20
+    #: Near clipping plane (m).
+    near: float = 0.05
+    loop_labels: LoopLabelConfig = field(default_factory=_room_loop_labels)
+
+    def __post_init__(self) -> None:
+        sensor = min(self.noise_sigma, self.blur_sigma, self.exposure_amplitude)
+        texels = min(self.wall_texels_per_m, self.object_texels_per_m)
+        checks = {
+            "frames must be >= 2": self.frames >= 2,
+            "fps must be positive": self.fps > 0,
+            "width and height must be >= 16": self.width >= 16 and self.height >= 16,
+            "laps must be in (1, 3]": 1.0 < self.laps <= 3.0,
+            "speed must be positive": self.speed > 0,
+            "static_objects must be >= 1": self.static_objects >= 1,
+            "movable_objects must be >= 0": self.movable_objects >= 0,
+            "noise_sigma, blur_sigma and exposure_amplitude must be >= 0": sensor >= 0,
+            "exposure_period must be positive": self.exposure_period > 0,
+            "texel densities must be >= 20 per metre": texels >= 20,
+            "near must be positive": self.near > 0,
+            f"room_size must be >= {2 * WALL_CLEARANCE + 1} m wide and long and >= 2.2 m high": (
+                min(self.room_size[:2]) >= 2 * WALL_CLEARANCE + 1 and self.room_size[2] >= 2.2
+            ),
+            "camera_height must be inside the room": 0.3 <= self.camera_height <= self.room_size[2] - 0.3,
+        }
+        failed = [message for message, ok in checks.items() if not ok]
+        if failed:
+            raise ConfigError(f"synth config: {'; '.join(failed)}")
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics(
+            self.fx, self.fy, self.cx, self.cy, self.width, self.height, (), source="synth config"
+        )
+
+
+@dataclass(frozen=True)
+class ObjectClass:
+    label: str
+    #: Width (local x, along the wall), depth (local y) and height (m).
+    size: tuple[float, float, float]
+    mount: Literal["floor", "wall", "table"]
+    #: Base height of wall-mounted objects (m).
+    elevation: float = 0.0
+
+
+FLOOR_AND_WALL_CLASSES = (
+    ObjectClass("chair", (0.5, 0.5, 0.9), "floor"),
+    ObjectClass("potted plant", (0.45, 0.45, 0.85), "floor"),
+    ObjectClass("couch", (1.8, 0.85, 0.8), "floor"),
+    ObjectClass("refrigerator", (0.7, 0.7, 1.8), "floor"),
+    ObjectClass("tv", (1.0, 0.08, 0.6), "wall", 1.1),
+    ObjectClass("clock", (0.32, 0.05, 0.32), "wall", 1.85),
+)
+TABLE = ObjectClass("dining table", (1.4, 0.8, 0.75), "floor")
+TABLE_ITEMS = (
+    ObjectClass("cup", (0.09, 0.09, 0.11), "table"),
+    ObjectClass("bottle", (0.08, 0.08, 0.28), "table"),
+    ObjectClass("book", (0.17, 0.05, 0.24), "table"),
+    ObjectClass("laptop", (0.34, 0.26, 0.22), "table"),
+    ObjectClass("keyboard", (0.44, 0.15, 0.03), "table"),
+)
+PERSON = ObjectClass("person", (0.45, 0.28, 1.7), "floor")
+ITEMS_PER_TABLE = 4
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A textured planar quad: texture (0, 0) maps to corner 0, (w, 0) to 1, (w, h) to 2, (0, h) to 3."""
+
+    #: (4, 3) corners; the outward normal is (c1 - c0) x (c3 - c0) reversed, i.e. right x up.
+    corners: np.ndarray
+    #: Texture pyramid (level 0 first), shading baked in.
+    pyramid: tuple[np.ndarray, ...]
+    texels_per_m: float
+
+
+@dataclass(frozen=True)
+class WorldObject:
+    label: str
+    #: Id in the renderer's instance buffer (1-based; 0 is the room).
+    instance: int
+    #: Geometric centre at t = 0 (m).
+    centre: tuple[float, float, float]
+    size: tuple[float, float, float]
+    #: Rotation about z (rad); the local -y face (the front) faces into the room.
+    yaw: float
+    movable: bool = False
+    #: Movable objects oscillate along their local x axis: amplitude (m), period (s), phase (rad).
+    amplitude: float = 0.0
+    period: float = 1.0
+    phase: float = 0.0
+
+    def centre_at(self, t: float) -> np.ndarray:
+        offset = self.amplitude * math.sin(2 * math.pi * t / self.period + self.phase)
+        return np.array(self.centre) + offset * np.array([math.cos(self.yaw), math.sin(self.yaw), 0.0])
+
+    def transform_at(self, t: float) -> np.ndarray:
+        """Local (base-centred) to world 4x4 transform at time ``t``."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        matrix = np.eye(4)
+        matrix[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+        matrix[:3, 3] = self.centre_at(t) - [0.0, 0.0, self.size[2] / 2]
+        return matrix
+
+    def corners_at(self, t: float) -> np.ndarray:
+        """The 8 cuboid corners in world coordinates, (8, 3)."""
+        w, d, h = self.size
+        local = np.array([[x, y, z, 1.0] for x in (-w / 2, w / 2) for y in (-d / 2, d / 2) for z in (0.0, h)])
+        return (local @ self.transform_at(t).T)[:, :3]
+
+
+@dataclass(frozen=True)
+class World:
+    room_size: tuple[float, float, float]
+    #: Walls, floor and ceiling in world coordinates.
+    room: tuple[Surface, ...]
+    objects: tuple[WorldObject, ...]
+    #: Faces of each class in its local frame (base centre at the origin), shared by its instances.
+    models: Mapping[str, tuple[Surface, ...]]
+
+
+def quad(
+    centre: np.ndarray, normal: np.ndarray, right: np.ndarray, half_w: float, half_h: float
+) -> np.ndarray:
+    """Corners of a rectangle seen from the side ``normal`` points to: top-left first, clockwise."""
+    up = np.cross(normal, right)
+    return np.array(
+        [
+            centre - right * half_w + up * half_h,
+            centre + right * half_w + up * half_h,
+            centre + right * half_w - up * half_h,
+            centre - right * half_w - up * half_h,
+        ]
+    )
+
+
+def _label_seed(seed: int, label: str) -> list[int]:
+    return [seed, zlib.crc32(label.encode("utf-8"))]
+
+
+def paint_texture(
+    rng: np.random.Generator, width_m: float, height_m: float, texels_per_m: float, density: float = 1.0
+) -> np.ndarray:
+    """A non-repeating random texture of ``width_m`` x ``height_m`` metres (BGR uint8)."""
+    width = max(8, round(width_m * texels_per_m))
+    height = max(8, round(height_m * texels_per_m))
+    cell = 0.35 * texels_per_m
+    base = rng.uniform(70, 190, 3)
+    grid_shape = (max(2, round(height / cell) + 1), max(2, round(width / cell) + 1))
+    # Mostly brightness variation with a little colour: a plausible paint/wallpaper background.
+    grid = rng.uniform(-35, 35, (*grid_shape, 1)) + rng.uniform(-12, 12, (*grid_shape, 3))
+    field_ = cv2.resize((grid + base).astype(np.float32), (width, height), interpolation=cv2.INTER_CUBIC)
+    texture = np.clip(field_, 0, 255).astype(np.uint8)
+    area = width_m * height_m
+    max_size = 0.8 * min(width_m, height_m)
+    # (min size, max size, shapes per square metre, at least) in metres.
+    for lo, hi, per_m2, least in ((0.25, 0.8, 1.0, 1), (0.06, 0.25, 14.0, 2), (0.015, 0.06, 60.0, 3)):
+        count = max(least, round(area * per_m2 * density))
+        sizes = rng.uniform(min(lo, max_size / 2), min(hi, max_size), count) * texels_per_m
+        centres = rng.uniform(0, 1, (count, 2)) * (width, height)
+        angles = rng.uniform(0, math.pi, count)
+        kinds = rng.integers(0, 6, count)
+        aspects = rng.uniform(0.3, 1.0, count)
+        dark = rng.random(count) < 0.5
+        colours = rng.integers(0, 256, (count, 3)).astype(np.float64)
+        colours = np.where(dark[:, None], colours * 0.35, 255 - (255 - colours) * 0.35).round().astype(int)
+        thickness = np.maximum(1, (sizes * rng.uniform(0.04, 0.12, count)).round().astype(int))
+        for k in range(count):
+            _draw_shape(
+                texture, int(kinds[k]), centres[k], sizes[k], aspects[k], angles[k], colours[k], thickness[k]
+            )
+    return texture
+
+
+def _draw_shape(
+    image: np.ndarray,
+    kind: int,
+    centre: np.ndarray,
+    size: float,
+    aspect: float,
+    angle: float,
+    colour: np.ndarray,
+    thickness: int,
+) -> None:
+    colour_t = (int(colour[0]), int(colour[1]), int(colour[2]))
+    c, s = math.cos(angle), math.sin(angle)
+    axis_u, axis_v = np.array([c, s]) * size / 2, np.array([-s, c]) * size * aspect / 2
+    if kind in (0, 4):  # rotated rectangle, filled or outlined
+        points = (
+            np.array(
+                [
+                    centre + axis_u + axis_v,
+                    centre - axis_u + axis_v,
+                    centre - axis_u - axis_v,
+                    centre + axis_u - axis_v,
+                ]
+            )
+            .round()
+            .astype(np.int32)
+        )
+        if kind == 0:
+            cv2.fillConvexPoly(image, points, colour_t, cv2.LINE_AA)
+        else:
+            cv2.polylines(image, [points], True, colour_t, thickness, cv2.LINE_AA)
+    elif kind == 1:  # triangle
+        points = np.array([centre + axis_u, centre - axis_u + axis_v, centre - axis_u - 1.5 * axis_v])
+        cv2.fillConvexPoly(image, points.round().astype(np.int32), colour_t, cv2.LINE_AA)
+    elif kind == 2:  # disc
+        cv2.circle(
+            image, (round(centre[0]), round(centre[1])), max(1, round(size / 2)), colour_t, -1, cv2.LINE_AA
+        )
+    elif kind == 3:  # ellipse
+        axes = (max(1, round(size / 2)), max(1, round(size * aspect / 2)))
+        cv2.ellipse(
+            image,
+            (round(centre[0]), round(centre[1])),
+            axes,
+            math.degrees(angle),
+            0,
+            360,
+            colour_t,
+            -1,
+            cv2.LINE_AA,
+        )
+    else:  # line
+        a, b = (centre + axis_u).round().astype(int), (centre - axis_u).round().astype(int)
+        cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), colour_t, thickness, cv2.LINE_AA)
+
+
+def texture_pyramid(texture: np.ndarray, shade: float) -> tuple[np.ndarray, ...]:
+    """Shade a texture and build its pyramid down to ~8 texels on the short side."""
+    levels = [cv2.convertScaleAbs(texture, alpha=shade)]
+    while min(levels[-1].shape[:2]) >= 16:
+        levels.append(cv2.pyrDown(levels[-1]))
+    return tuple(levels)
+
+
+def build_world(config: SynthConfig) -> World:
+    """The room, its objects and every texture, all from ``config.seed``."""
+    size_x, size_y, size_z = config.room_size
+    room = _room_surfaces(config)
+    rng = np.random.default_rng([config.seed, 1])
+    static = _place_static_objects(config, rng)
+    movable = _place_people(config, rng, first_instance=len(static) + 1)
+    objects = static + movable
+    labels = sorted({obj.label for obj in objects})
+    classes = {c.label: c for c in (*FLOOR_AND_WALL_CLASSES, TABLE, *TABLE_ITEMS, PERSON)}
+    models = {label: _cuboid_faces(classes[label], config) for label in labels}
+    return World((size_x, size_y, size_z), room, tuple(objects), models)
+
+
+def _room_surfaces(config: SynthConfig) -> tuple[Surface, ...]:
+    sx, sy, sz = config.room_size
+    x, y, z = np.eye(3)
+    density = config.wall_texels_per_m
+    # (centre, inward normal, right, width, height, texels/m, shade, shape density)
+    specs = (
+        ((0, sy / 2, sz / 2), -y, x, sx, sz, density, 0.95, 1.0),
+        ((sx / 2, 0, sz / 2), -x, -y, sy, sz, density, 0.85, 1.0),
+        ((0, -sy / 2, sz / 2), y, -x, sx, sz, density, 0.9, 1.0),
+        ((-sx / 2, 0, sz / 2), x, y, sy, sz, density, 0.8, 1.0),
+        ((0, 0, 0), z, x, sx, sy, density * 2 / 3, 0.85, 0.8),
+        ((0, 0, sz), -z, x, sx, sy, density / 2, 0.7, 0.4),
+    )
+    surfaces = []
+    for index, (centre, normal, right, width, height, texels, shade, shapes) in enumerate(specs):
+        rng = np.random.default_rng([config.seed, 2, index])
+        texture = paint_texture(rng, width, height, texels, shapes)
+        corners = quad(np.array(centre, dtype=float), normal, right, width / 2, height / 2)
+        surfaces.append(Surface(corners, texture_pyramid(texture, shade), texels))
+    return tuple(surfaces)
+
+
+def _cuboid_faces(cls: ObjectClass, config: SynthConfig) -> tuple[Surface, ...]:
+    w, d, h = cls.size
+    x, y, z = np.eye(3)
+    # (centre, outward normal, right, width, height, shade): shading fixed in the object frame.
+    specs = (
+        ((0, -d / 2, h / 2), -y, x, w, h, 0.95),
+        ((w / 2, 0, h / 2), x, y, d, h, 0.85),
+        ((0, d / 2, h / 2), y, -x, w, h, 0.75),
+        ((-w / 2, 0, h / 2), -x, -y, d, h, 0.8),
+        ((0, 0, h), z, x, w, d, 1.0),
+        ((0, 0, 0), -z, x, w, d, 0.6),
+    )
+    faces = []
+    for index, (centre, normal, right, width, height, shade) in enumerate(specs):
+        rng = np.random.default_rng([*_label_seed(config.seed, cls.label), index])
+        texture = paint_texture(rng, width, height, config.object_texels_per_m)
+        corners = quad(np.array(centre, dtype=float), normal, right, width / 2, height / 2)
+        faces.append(Surface(corners, texture_pyramid(texture, shade), config.object_texels_per_m))
+    return tuple(faces)
+
+
+def _place_static_objects(config: SynthConfig, rng: np.random.Generator) -> list[WorldObject]:
+    n = config.static_objects
+    n_tables = max(1, round(n / 7))
+    n_items = min(round(0.35 * n), ITEMS_PER_TABLE * n_tables, max(0, n - n_tables - 1))
+    n_rest = max(0, n - n_tables - n_items)
+    # Drawn with replacement from few classes: repeated classes are the point (perceptual aliasing).
+    rest = [FLOOR_AND_WALL_CLASSES[i] for i in rng.integers(0, len(FLOOR_AND_WALL_CLASSES), n_rest)]
+    along_wall = [TABLE] * n_tables + rest
+    sx, sy, _ = config.room_size
+    corner_margin = 0.95
+    # Each wall: start corner, direction along it, inward normal, length.
+    walls = (
+        (np.array([-sx / 2, sy / 2]), np.array([1.0, 0.0]), np.array([0.0, -1.0]), sx),
+        (np.array([sx / 2, sy / 2]), np.array([0.0, -1.0]), np.array([-1.0, 0.0]), sy),
+        (np.array([sx / 2, -sy / 2]), np.array([-1.0, 0.0]), np.array([0.0, 1.0]), sx),
+        (np.array([-sx / 2, -sy / 2]), np.array([0.0, 1.0]), np.array([1.0, 0.0]), sy),
+    )
+    lengths = np.array([w[3] - 2 * corner_margin for w in walls])
+    taken: list[list[tuple[float, float]]] = [[] for _ in walls]
+    objects: list[WorldObject] = []
+    tables: list[WorldObject] = []
+    for cls in along_wall:
+        w, d, h = cls.size
+        for _ in range(500):
+            wall = int(rng.choice(len(walls), p=lengths / lengths.sum()))
+            start, direction, inward, _length = walls[wall]
+            half = w / 2 + 0.12
+            if lengths[wall] < 2 * half:
+                continue
+            s = corner_margin + half + rng.uniform(0, lengths[wall] - 2 * half)
+            if all(s + half <= a or s - half >= b for a, b in taken[wall]):
+                break
+        else:
+            raise ConfigError(
+                f"synth config: cannot fit {n} objects along the walls of a {sx} x {sy} m room; "
+                "lower static_objects or enlarge room_size"
+            )
+        taken[wall].append((s - half, s + half))
+        gap = 0.02 if cls.mount == "wall" else float(rng.uniform(0.03, 0.25))
+        xy = start + direction * s + inward * (gap + d / 2)
+        base = cls.elevation if cls.mount == "wall" else 0.0
+        obj = WorldObject(
+            cls.label,
+            0,
+            (float(xy[0]), float(xy[1]), base + h / 2),
+            cls.size,
+            math.atan2(inward[0], -inward[1]),
+        )
+        objects.append(obj)
+        if cls is TABLE:
+            tables.append(obj)
+    items = [TABLE_ITEMS[i] for i in rng.integers(0, len(TABLE_ITEMS), n_items)]
+    for k, cls in enumerate(items):
+        table = tables[k % len(tables)]
+        slot = k // len(tables)
+        tw, td, th = table.size
+        w, d, h = cls.size
+        # One item per slot along the table: no two items overlap.
+        slot_w = tw / ITEMS_PER_TABLE
+        local_x = -tw / 2 + slot_w * (slot + 0.5) + rng.uniform(-1, 1) * max(0.0, (slot_w - w) / 2 - 0.01)
+        local_y = rng.uniform(-1, 1) * max(0.0, (td - max(w, d)) / 2 - 0.03)
+        yaw = table.yaw + float(rng.uniform(-0.25, 0.25))
+        centre = table.transform_at(0.0) @ np.array([local_x, local_y, th + h / 2, 1.0])
+        objects.append(
+            WorldObject(cls.label, 0, (float(centre[0]), float(centre[1]), float(centre[2])), cls.size, yaw)
+        )
+    return [_with_instance(obj, k + 1) for k, obj in enumerate(objects)]
+
+
+def _with_instance(obj: WorldObject, instance: int) -> WorldObject:
+    return WorldObject(
+        obj.label, instance, obj.centre, obj.size, obj.yaw, obj.movable, obj.amplitude, obj.period, obj.phase
+    )
+
+
+def _place_people(config: SynthConfig, rng: np.random.Generator, first_instance: int) -> list[WorldObject]:
+    sx, sy, _ = config.room_size
+    people = []
+    for k in range(config.movable_objects):
+        side = 1.0 if k % 2 == 0 else -1.0
+        amplitude = float(rng.uniform(0.7, 1.2))
+        reach = max(0.0, sx / 2 - 1.3 - amplitude)
+        x0 = float(rng.uniform(-reach, reach))
+        y0 = side * (sy / 2 - PERSON_LANE)
+        people.append(
+            WorldObject(
+                PERSON.label,
+                first_instance + k,
+                (x0, y0, PERSON.size[2] / 2),
+                PERSON.size,
+                0.0 if side > 0 else math.pi,
+                movable=True,
+                amplitude=amplitude,
+                period=float(rng.uniform(7.0, 11.0)),
+                phase=float(rng.uniform(0, 2 * math.pi)),
+            )
+        )
+    return people
