@@ -71,9 +71,13 @@ def make_kitti_official(dataset: Path, sequence: str, n: int = 4, with_poses: bo
     root = dataset / "sequences" / sequence
     write_images(root / "image_0", [f"{k:06d}.png" for k in range(n)])
     write_images(root / "image_2", [f"{k:06d}.png" for k in range(n)])
-    lines = [f"P0: {projection(40.0, 30.0, 20.0)}", f"P1: {projection(40.0, 30.0, 20.0, -20.0)}",
-             f"P2: {projection(42.0, 31.0, 22.0, 2.0)}", f"P3: {projection(42.0, 31.0, 22.0, -18.0)}",
-             f"Tr: {projection(1.0, 0.0, 0.0)}"]
+    lines = [
+        f"P0: {projection(40.0, 30.0, 20.0)}",
+        f"P1: {projection(40.0, 30.0, 20.0, -20.0)}",
+        f"P2: {projection(42.0, 31.0, 22.0, 2.0)}",
+        f"P3: {projection(42.0, 31.0, 22.0, -18.0)}",
+        f"Tr: {projection(1.0, 0.0, 0.0)}",
+    ]
     (root / "calib.txt").write_text("\n".join(lines) + "\n")
     (root / "times.txt").write_text("".join(f"{0.1036 * k:.6e}\n" for k in range(n)))
     if with_poses:
@@ -220,20 +224,39 @@ def test_kitti_calib_override(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("edit", "error", "location"),
     [
-        (lambda r: (r / "poses.txt").write_text((r / "poses.txt").read_text() + "1 0 0 0 0 1 0 0 0 0 1 0\n"),
-         DatasetError, "poses.txt: 6 poses"),
+        (
+            lambda r: (r / "poses.txt").write_text(
+                (r / "poses.txt").read_text() + "1 0 0 0 0 1 0 0 0 0 1 0\n"
+            ),
+            DatasetError,
+            "poses.txt: 6 poses",
+        ),
         (lambda r: (r / "times.txt").write_text("0.0\n0.1\n0.2\n"), DatasetError, "times.txt: 3 timestamps"),
         (lambda r: (r / "times.txt").write_text("0.0\n0.1\n0.1\n0.3\n0.4\n"), DatasetError, "times.txt:3"),
-        (lambda r: (r / "poses.txt").write_text(
-            "\n".join([*(r / "poses.txt").read_text().splitlines()[:2], "1 0 0 0 0 1 0 0 0 0 1"])),
-         TrajectoryFileError, "poses.txt:3"),
-        (lambda r: (r / "calib.txt").write_text(projection(1, 2, 3) + "\n1 2 x 4 5 6 7 8 9 10 11 12\n"),
-         CalibrationError, "calib.txt:2"),
+        (
+            lambda r: (r / "poses.txt").write_text(
+                "\n".join([*(r / "poses.txt").read_text().splitlines()[:2], "1 0 0 0 0 1 0 0 0 0 1"])
+            ),
+            TrajectoryFileError,
+            "poses.txt:3",
+        ),
+        (
+            lambda r: (r / "calib.txt").write_text(projection(1, 2, 3) + "\n1 2 x 4 5 6 7 8 9 10 11 12\n"),
+            CalibrationError,
+            "calib.txt:2",
+        ),
         (lambda r: (r / "calib.txt").write_text(f"P1: {projection(1, 2, 3)}\n"), CalibrationError, "no P0"),
         (lambda r: (r / "calib.txt").unlink(), CalibrationError, "calib.txt: not found"),
     ],
-    ids=["poses-count", "times-count", "times-duplicate", "poses-bad-line", "calib-bad-line", "calib-no-p0",
-         "calib-missing"],
+    ids=[
+        "poses-count",
+        "times-count",
+        "times-duplicate",
+        "poses-bad-line",
+        "calib-bad-line",
+        "calib-no-p0",
+        "calib-missing",
+    ],
 )
 def test_kitti_bad_input(
     tmp_path: Path, edit: Callable[[Path], object], error: type[Exception], location: str
@@ -286,11 +309,18 @@ def test_euroc_layout_and_camera_pose(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("edit", "error", "location"),
     [
-        (lambda c: c.write_text(c.read_text().replace(f"{EUROC_T0_NS + 100_000_000},",
-                                                       f"{EUROC_T0_NS + 50_000_000},", 1)),
-         DatasetError, "cam0/data.csv:4: duplicate"),
-        (lambda c: c.write_text(c.read_text() + f"{EUROC_T0_NS},{EUROC_T0_NS}.png\n"),
-         DatasetError, "cam0/data.csv:6: decreasing"),
+        (
+            lambda c: c.write_text(
+                c.read_text().replace(f"{EUROC_T0_NS + 100_000_000},", f"{EUROC_T0_NS + 50_000_000},", 1)
+            ),
+            DatasetError,
+            "cam0/data.csv:4: duplicate",
+        ),
+        (
+            lambda c: c.write_text(c.read_text() + f"{EUROC_T0_NS},{EUROC_T0_NS}.png\n"),
+            DatasetError,
+            "cam0/data.csv:6: decreasing",
+        ),
         (lambda c: c.write_text(c.read_text() + "12345\n"), DatasetError, "cam0/data.csv:6"),
         (lambda c: c.write_text(c.read_text() + "1.5e9,x.png\n"), DatasetError, "cam0/data.csv:6"),
         (lambda c: (c.parent / "sensor.yaml").unlink(), CalibrationError, "sensor.yaml: not found"),
@@ -543,8 +573,15 @@ def test_detection_picks_each_layout(tmp_path: Path) -> None:
     make_loops(tmp_path / "loops")
     write_images(tmp_path / "folder", ["a.png"])
     make_video(tmp_path / "clip.avi")
-    expected = {"kitti": "kitti", "euroc": "euroc", "euroc/mav0": "euroc", "tum": "tum", "loops": "loops",
-                "folder": "folder", "clip.avi": "video"}
+    expected = {
+        "kitti": "kitti",
+        "euroc": "euroc",
+        "euroc/mav0": "euroc",
+        "tum": "tum",
+        "loops": "loops",
+        "folder": "folder",
+        "clip.avi": "video",
+    }
     assert {name: detect_format(tmp_path / name) for name in expected} == expected
     (tmp_path / "empty").mkdir()
     with pytest.raises(DatasetError, match="unrecognised dataset layout"):
