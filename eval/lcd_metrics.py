@@ -1,0 +1,78 @@
+"""Loop-closure detection metrics: pure numpy, no I/O (the evo-style core of ``symbio eval lcd``).
+
+Protocol: every keyframe is a query against the keyframes before it (outside the detector's
+temporal window); it yields its best candidate and that candidate's score. The candidate is a true
+positive when it lies within ``tolerance`` frames of a ground-truth reference of the query. A query
+"has a loop" when some earlier keyframe lies within ``tolerance`` frames of one of its references,
+i.e. when a true positive was possible. Sweeping a threshold over the best scores gives the
+precision/recall curve; recall = TP / queries that have a loop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+
+def gt_references(pairs: np.ndarray) -> dict[int, np.ndarray]:
+    """Query frame -> sorted reference frames, from (query, ref) pairs."""
+    refs: dict[int, list[int]] = {}
+    for query, ref in np.asarray(pairs, dtype=np.int64).reshape(-1, 2).tolist():
+        refs.setdefault(query, []).append(ref)
+    return {q: np.array(sorted(r), dtype=np.int64) for q, r in refs.items()}
+
+
+def is_true_match(match: int, references: np.ndarray | None, tolerance: int) -> bool:
+    return references is not None and bool(np.any(np.abs(references - match) <= tolerance))
+
+
+def has_reachable_loop(references: np.ndarray | None, candidates: Sequence[int], tolerance: int) -> bool:
+    """Whether any keyframe frame in ``candidates`` lies within ``tolerance`` of a reference."""
+    if references is None or len(candidates) == 0:
+        return False
+    frames = np.asarray(candidates, dtype=np.int64)
+    return bool(np.any(np.abs(frames[:, None] - references[None, :]) <= tolerance))
+
+
+def precision_recall_curve(
+    scores: np.ndarray, correct: np.ndarray, positives: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(thresholds descending, precision, recall) accepting every best candidate with score >= threshold."""
+    scores = np.asarray(scores, dtype=np.float64)
+    correct = np.asarray(correct, dtype=bool)
+    order = np.argsort(-scores, kind="stable")
+    scores, correct = scores[order], correct[order]
+    true_positives = np.cumsum(correct)
+    accepted = np.arange(1, len(scores) + 1)
+    # Tied scores are accepted together: keep the last index of each run of equal scores.
+    last_of_tie = np.r_[scores[1:] != scores[:-1], True] if len(scores) else np.zeros(0, dtype=bool)
+    precision = true_positives[last_of_tie] / accepted[last_of_tie]
+    recall = true_positives[last_of_tie] / positives if positives else np.zeros(int(last_of_tie.sum()))
+    return scores[last_of_tie], precision, recall
+
+
+def summarise(
+    scores: np.ndarray, correct: np.ndarray, positives: int, threshold: float
+) -> Mapping[str, float | int]:
+    """precision/recall at ``threshold``, recall at 100 % precision, and the area under the PR curve."""
+    scores = np.asarray(scores, dtype=np.float64)
+    correct = np.asarray(correct, dtype=bool)
+    thresholds, precision, recall = precision_recall_curve(scores, correct, positives)
+    accepted = scores >= threshold
+    tp = int((accepted & correct).sum())
+    perfect = precision >= 1.0
+    # Average precision: each recall step weighted by the precision reached there.
+    auc = float(np.sum(np.diff(np.r_[0.0, recall]) * precision)) if len(recall) else 0.0
+    return {
+        "queries": len(scores),
+        "queries_with_loop": positives,
+        "true_positives": tp,
+        "false_positives": int((accepted & ~correct).sum()),
+        "precision": tp / int(accepted.sum()) if accepted.any() else 1.0,
+        "recall": tp / positives if positives else 0.0,
+        "recall_at_100p": float(recall[perfect].max()) if perfect.any() else 0.0,
+        "auc_pr": auc,
+        "threshold": threshold,
+        "threshold_at_100p": float(thresholds[perfect][-1]) if perfect.any() else float("nan"),
+    }

@@ -1,0 +1,119 @@
+"""Graph builder, label matching, temporal constraint and LCD metrics on known inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eval.lcd_metrics import (
+    gt_references,
+    has_reachable_loop,
+    is_true_match,
+    precision_recall_curve,
+    summarise,
+)
+from frontends.types import DetectedObject
+from lcd.graph import AROUND, BACKGROUND, DISTANCE, INSIDE, OBJECT, SCENE, GraphConfig, build_graph
+from lcd.label_matching import LabelMatchConfig, match_labels
+
+
+def _obj(label: str, box: tuple[float, float, float, float]) -> DetectedObject:
+    return DetectedObject(label, 0.9, box)
+
+
+OBJECTS = [
+    _obj("chair", (100, 100, 200, 200)),
+    _obj("tv", (300, 100, 400, 180)),
+    _obj("cup", (150, 300, 180, 330)),
+]
+KEYPOINTS = np.array(
+    [[150, 150], [120, 110], [350, 150], [210, 150], [160, 320], [600, 400], [10, 10], [320, 240]],
+    dtype=np.float32,
+)
+WORDS = np.arange(len(KEYPOINTS))
+
+
+def test_three_tier_graph_structure() -> None:
+    graph = build_graph(KEYPOINTS, WORDS, OBJECTS, GraphConfig(margin_px=25))
+    sizes = graph.tier_sizes()
+    assert sizes["scene"] == 1 and sizes["object"] == 3 and sizes["distance"] == 3
+    # inside boxes: (150,150) (120,110) in the chair, (350,150) in the tv, (160,320) in the cup
+    assert sizes["tier2"] == 4
+    # within 25 px of a box edge but outside it: (210,150) next to the chair
+    assert sizes["tier3"] == 1
+    # (600,400), (10,10), (320,240) belong to no object: background on the scene node
+    assert sizes["tier0"] == 3
+    nx_graph = graph.to_networkx()
+    assert nx_graph.number_of_nodes() == graph.num_nodes
+    # every feature hangs off exactly one anchor; objects meet each other only through distance nodes
+    for node, data in nx_graph.nodes(data=True):
+        if data["kind"] in ("tier2", "tier3", "tier0"):
+            assert nx_graph.degree(node) == 1
+        if data["kind"] == "distance":
+            assert {nx_graph.nodes[n]["kind"] for n in nx_graph.neighbors(node)} == {"object"}
+
+
+def test_tier2_labels_carry_the_object_class_and_tier3_do_not() -> None:
+    graph = build_graph(KEYPOINTS, np.zeros(len(KEYPOINTS), dtype=int), OBJECTS)
+    inside = set(graph.labels[graph.kinds == INSIDE].tolist())
+    around = set(graph.labels[graph.kinds == AROUND].tolist())
+    assert len(inside) == 3  # chair, tv, cup: the same word, three classes
+    assert len(around) == 1
+
+
+def test_ablations_and_no_objects() -> None:
+    two = build_graph(KEYPOINTS, WORDS, OBJECTS, GraphConfig(tiers=2))
+    assert (two.kinds == AROUND).sum() == 0
+    flat = build_graph(KEYPOINTS, WORDS, OBJECTS, GraphConfig(tiers=1))
+    assert set(flat.kinds.tolist()) == {SCENE, BACKGROUND} and (flat.kinds == BACKGROUND).sum() == len(
+        KEYPOINTS
+    )
+    empty = build_graph(KEYPOINTS, WORDS, [])
+    assert (empty.kinds == OBJECT).sum() == 0 and (empty.kinds == BACKGROUND).sum() == len(KEYPOINTS)
+    nothing = build_graph(np.zeros((0, 2)), np.zeros(0, dtype=int), [])
+    assert nothing.num_nodes == 1 and len(nothing.edges) == 0
+
+
+def test_distance_bins_are_scale_invariant() -> None:
+    scaled = [DetectedObject(o.label, o.score, tuple(2 * v for v in o.box)) for o in OBJECTS]  # type: ignore[misc]
+    a = build_graph(KEYPOINTS, WORDS, OBJECTS)
+    b = build_graph(KEYPOINTS * 2, WORDS, scaled)
+    assert sorted(a.labels[a.kinds == DISTANCE].tolist()) == sorted(b.labels[b.kinds == DISTANCE].tolist())
+
+
+def test_label_matching_tolerates_40_percent_missing() -> None:
+    labels = ["chair", "tv", "cup", "book", "bottle"]
+    rng = np.random.default_rng(0)
+    boxes = [(x, y, x + 40, y + 40) for x, y in rng.uniform(0, 500, size=(5, 2))]
+    full = [_obj(lab, box) for lab, box in zip(labels, boxes, strict=True)]
+    # the same layout seen from farther away (scale 0.5) and shifted, with 2 of 5 objects missed
+    far = [
+        _obj(o.label, (o.box[0] / 2 + 80, o.box[1] / 2 + 30, o.box[2] / 2 + 80, o.box[3] / 2 + 30))
+        for o in full
+    ]
+    match = match_labels(full, far[:3])
+    assert match.ratio == pytest.approx(3 / 5) and match.agrees(LabelMatchConfig())
+    # a different arrangement of the same labels does not agree
+    shuffled = [_obj(o.label, full[(i + 2) % 5].box) for i, o in enumerate(full)]
+    assert not match_labels(full, shuffled).agrees(LabelMatchConfig())
+    assert match_labels(full, []).ratio == 0.0
+
+
+def test_metrics_known_answers() -> None:
+    refs = gt_references(np.array([[10, 1], [10, 2], [11, 3]]))
+    assert refs[10].tolist() == [1, 2]
+    assert is_true_match(3, refs[10], tolerance=1) and not is_true_match(4, refs[10], tolerance=1)
+    assert has_reachable_loop(refs[11], [0, 5], tolerance=2) and not has_reachable_loop(refs[11], [6], 2)
+    scores = np.array([0.9, 0.8, 0.7, 0.6, 0.5])
+    correct = np.array([True, True, False, True, False])
+    thresholds, precision, recall = precision_recall_curve(scores, correct, positives=4)
+    np.testing.assert_allclose(thresholds, scores)
+    np.testing.assert_allclose(precision, [1, 1, 2 / 3, 3 / 4, 3 / 5])
+    np.testing.assert_allclose(recall, [0.25, 0.5, 0.5, 0.75, 0.75])
+    figures = summarise(scores, correct, positives=4, threshold=0.75)
+    assert figures["recall_at_100p"] == 0.5 and figures["threshold_at_100p"] == 0.8
+    assert figures["precision"] == 1.0 and figures["recall"] == 0.5
+    assert figures["auc_pr"] == pytest.approx(0.25 * 1 + 0.25 * 1 + 0.25 * 0.75)
+    # tied scores are accepted together
+    _, tied_precision, _ = precision_recall_curve(np.array([0.5, 0.5]), np.array([True, False]), 1)
+    np.testing.assert_allclose(tied_precision, [0.5])
