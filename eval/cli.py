@@ -14,7 +14,14 @@ from collections.abc import Sequence
 from frontends.errors import SymbioError
 
 #: Modules that contribute subcommands, in the order ``--help`` lists them.
-SUBCOMMAND_MODULES = ("eval.demo", "frontends.synth.cli", "frontends.datasets.cli")
+SUBCOMMAND_MODULES = (
+    "eval.demo",
+    "frontends.synth.cli",
+    "frontends.datasets.cli",
+    "slam_backend.cli",
+    "lcd.vocab_cli",
+    "eval.lcd_eval",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

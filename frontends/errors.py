@@ -38,3 +38,7 @@ class TrajectoryFileError(InputFileError):
 
 class ConfigError(SymbioError):
     """A configuration value or YAML config file is invalid."""
+
+
+class ModelError(InputFileError):
+    """A model file (network weights or graph) is missing, unreadable, or fails when run."""

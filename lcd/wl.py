@@ -1,0 +1,702 @@
+"""Incremental exact Weisfeiler-Lehman subtree kernel with the vertex-histogram base kernel.
+
+``k_WL(G, G') = sum_{t=0..h} <phi_t(G), phi_t(G')>`` (paper, section III-E; Shervashidze et al.
+2011), ``phi_t`` the histogram of the WL labels after ``t`` relabellings, normalised as
+``k(a, b) / sqrt(k(a, a) k(b, b))``. ``iterations`` = h counts relabellings: iterations 0..h, h + 1
+histograms, iteration 0 being the input labels. That is the paper's h and grakel's ``n_iter``
+(grakel's ``WeisfeilerLehman`` runs ``n_iter + 1`` base kernels); h = 0 is the plain vertex
+histogram, which grakel's WL rejects (``GrakelWL`` then uses grakel's ``VertexHistogram``).
+A graph without nodes has ``k(a, a) = 0`` and similarity 0 to every graph (grakel's 0/0 -> 0).
+
+Exactness: two nodes of any two graphs get the same label at iteration t iff they have the same
+label at t - 1 and the same multiset of neighbour labels at t - 1, as in grakel's dictionary; only
+the label ids differ, so the kernel values are identical (raw values are integers, exact in float64).
+
+Why not one dictionary entry per label: keyframe graphs are stars whose own WL partition stops
+refining after 2-3 iterations, yet from there on almost every class gets a fresh label at every
+iteration (they no longer match any other keyframe). At h = 50 that is ~45 labels per class per
+keyframe, ~40k per keyframe, in the dictionary and in the feature matrix. Instead:
+
+- Chains. Once a graph's partition is final (iteration ``s``), a class's later labels depend on the
+  graph alone. So when an added graph's class gets a new label at iteration ``t0 >= s`` we allocate a
+  chain of ids for iterations ``t0..h`` and record the class as its anchor. The dictionary holds only
+  the chain's first label: the signature of position ``j + 1`` is implicitly (position ``j``, the
+  anchor's neighbour multiset at iteration ``t0 + j``), checked on demand against the anchor graph's
+  stored label trajectory ("continuation"). Labels created before ``s`` are chains of length 1.
+  Label id = chain * (h + 1) + position.
+- Runs. A node enters a chain only at its first position (any later position needs the previous one
+  as its own previous label), so a class's labels over 0..h are runs ``(chain, length L)`` from the
+  chain start, and ``<phi(G), phi(G')> = sum over shared chains of n n' min(L, L')``. A graph is
+  stored as its runs (count per (chain, L)); one query is a few ``searchsorted`` calls and sparse
+  products against an LSM-style list of posting blocks (blocks of equal graph count are merged).
+- Early stop. From iteration ``s`` on, if every class either runs on its own new chain, is unknown
+  (query), or continued a stored chain whose anchor's neighbours no longer change chain while all
+  its own neighbours continued too, nothing changes any more (the neighbour multisets advance in
+  lock step), so the remaining iterations are filled in without lookups.
+Self-similarities come from the graph's own partitions: ``sum_t sum_classes size^2``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from lcd.graph import LabelledGraph
+
+#: Shift separating the segment index from the label in combined sort keys (labels < 2**40).
+_SEG_SHIFT = 40
+
+
+class _Buffer:
+    """An append-only numpy array with amortised O(1) appends."""
+
+    def __init__(self, dtype: type, data: np.ndarray | None = None) -> None:
+        initial: np.ndarray = np.zeros(0, dtype=dtype) if data is None else np.asarray(data, dtype=dtype)
+        self._data: np.ndarray = np.zeros(max(16, 2 * len(initial)), dtype=dtype)
+        self._data[: len(initial)] = initial
+        self._size = len(initial)
+
+    def __len__(self) -> int:
+        return self._size
+
+    def extend(self, values: np.ndarray) -> None:
+        end = self._size + len(values)
+        if end > len(self._data):
+            grown = np.zeros(max(end, 2 * len(self._data)), dtype=self._data.dtype)
+            grown[: self._size] = self._data[: self._size]
+            self._data = grown
+        self._data[self._size : end] = values
+        self._size = end
+
+    def view(self) -> np.ndarray:
+        return self._data[: self._size]
+
+
+def _ranges(starts: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(segment of each element, index of each element) of the ranges ``starts[i] + 0..lengths[i]-1``."""
+    total = int(lengths.sum())
+    seg = np.repeat(np.arange(len(starts), dtype=np.int64), lengths)
+    offsets = np.cumsum(lengths) - lengths
+    return seg, np.repeat(starts - offsets, lengths) + np.arange(total, dtype=np.int64)
+
+
+def _sort_segments(seg: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` (>= -1, < 2**40) sorted within each segment; ``seg`` must be non-decreasing."""
+    keys = np.sort((seg << _SEG_SHIFT) | (values + 1))
+    return (keys & ((1 << _SEG_SHIFT) - 1)) - 1
+
+
+def _row_classes(rows: np.ndarray) -> tuple[np.ndarray, int]:
+    """Class of each row (equal rows, equal class) of a non-negative int64 matrix, and the class count."""
+    if len(rows) <= 1:
+        return np.zeros(len(rows), dtype=np.int64), len(rows)
+    radix = int(rows.max()) + 1
+    if radix ** rows.shape[1] < 2**62:
+        # Mixed-radix code: one 1-D unique instead of a row-wise (structured) one.
+        code = np.zeros(len(rows), dtype=np.int64)
+        for column in rows.T:
+            code = code * radix + column
+        unique, inverse = np.unique(code, return_inverse=True)
+    else:
+        unique, inverse = np.unique(rows, axis=0, return_inverse=True)
+    return inverse.reshape(-1).astype(np.int64), len(unique)
+
+
+@dataclass(frozen=True)
+class _Refinement:
+    """A graph's own WL partitions, independent of every other graph."""
+
+    labels: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    #: Node -> class at iterations 0..s; the last one is final (or iteration h was reached).
+    partitions: list[np.ndarray]
+    #: A representative node per class, per partition.
+    representatives: list[np.ndarray]
+    self_similarity: float
+
+    @property
+    def stable(self) -> int:
+        return len(self.partitions) - 1
+
+
+def _adjacency(graph: LabelledGraph) -> tuple[np.ndarray, np.ndarray]:
+    """CSR adjacency; duplicate edges collapse, a self-loop makes a node its own neighbour once (grakel)."""
+    n = graph.num_nodes
+    edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
+    if edges.size and (edges.min() < 0 or edges.max() >= n):
+        raise ValueError(f"edge endpoints must be in 0..{n - 1}")
+    low, high = edges.min(axis=1), edges.max(axis=1)
+    pairs = np.unique(low * max(n, 1) + high)
+    low, high = pairs // max(n, 1), pairs % max(n, 1)
+    loop = low == high
+    src = np.concatenate([low[~loop], high[~loop], low[loop]])
+    dst = np.concatenate([high[~loop], low[~loop], low[loop]])
+    order = np.lexsort((dst, src))
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(src, minlength=n), out=indptr[1:])
+    return indptr, dst[order]
+
+
+def _refine(graph: LabelledGraph, iterations: int) -> _Refinement:
+    labels = np.asarray(graph.labels, dtype=np.int64).reshape(-1)
+    indptr, indices = _adjacency(graph)
+    degree = np.diff(indptr)
+    # Nodes grouped by degree, each group's neighbours as an (nodes, degree) matrix.
+    groups = []
+    for d in np.unique(degree).tolist():
+        nodes = np.flatnonzero(degree == d)
+        groups.append((nodes, indices[indptr[nodes][:, None] + np.arange(d)]))
+    cls = np.unique(labels, return_inverse=True)[1].reshape(-1).astype(np.int64)
+    partitions = [cls]
+    count = int(cls.max()) + 1 if len(cls) else 0
+    for _ in range(iterations):
+        refined = np.empty_like(cls)
+        next_count = 0
+        for nodes, neighbours in groups:
+            rows = np.column_stack([cls[nodes], np.sort(cls[neighbours], axis=1)])
+            inverse, k = _row_classes(rows)
+            refined[nodes] = inverse + next_count
+            next_count += k
+        if next_count == count:
+            break
+        partitions.append(refined)
+        cls, count = refined, next_count
+    sizes = [float(np.square(np.bincount(p)).sum()) if len(p) else 0.0 for p in partitions]
+    self_similarity = sum(sizes) + (iterations + 1 - len(partitions)) * sizes[-1]
+    representatives = [np.unique(p, return_index=True)[1].astype(np.int64) for p in partitions]
+    return _Refinement(labels, indptr, indices, partitions, representatives, self_similarity)
+
+
+@dataclass
+class _Block:
+    """Postings of a run of consecutive graphs: one CSR row per (chain, run length) column key."""
+
+    keys: np.ndarray
+    matrix: sp.csr_matrix
+    graphs: int
+
+
+def _make_block(keys: np.ndarray, graph_ids: np.ndarray, counts: np.ndarray, graphs: int) -> _Block:
+    order = np.argsort(keys, kind="stable")
+    keys, graph_ids, counts = keys[order], graph_ids[order], counts[order]
+    unique, first = np.unique(keys, return_index=True)
+    indptr = np.append(first, len(keys)).astype(np.int64)
+    width = int(graph_ids.max()) + 1 if len(graph_ids) else 0
+    matrix = sp.csr_matrix((counts.astype(np.float64), graph_ids, indptr), shape=(len(unique), width))
+    return _Block(unique, matrix, graphs)
+
+
+def _block_postings(block: _Block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    keys = np.repeat(block.keys, np.diff(block.matrix.indptr))
+    return keys, block.matrix.indices.astype(np.int64), block.matrix.data
+
+
+@dataclass(frozen=True)
+class _Relabelled:
+    """A graph's runs (column key, count), and for an added graph the trajectory data to store."""
+
+    keys: np.ndarray
+    counts: np.ndarray
+    self_similarity: float
+    trajectory_keys: np.ndarray
+    trajectory_bases: np.ndarray
+    adjacency_lengths: np.ndarray
+    adjacency: np.ndarray
+    ready: np.ndarray
+
+
+class WLKernel:
+    """Exact incremental WL subtree kernel (see the module docstring); h = ``iterations``."""
+
+    def __init__(self, iterations: int) -> None:
+        if iterations < 0:
+            raise ValueError(f"iterations must be >= 0, got {iterations}")
+        self.iterations = iterations
+        self._width = iterations + 1
+        #: Input label -> label id (iteration 0).
+        self._initial: dict[int, int] = {}
+        #: Signature bytes (previous label, sorted neighbour labels; int64) -> label id (a chain start).
+        self._signatures: dict[bytes, int] = {}
+        self._chain_length = _Buffer(np.int64)
+        #: Anchor class (global class id) of a chain, -1 for a length-1 chain.
+        self._chain_anchor = _Buffer(np.int64)
+        # Per global class (the final classes of every stored graph, in add order): its label
+        # trajectory from the graph's stable iteration (segments keyed class * (h + 1) + start),
+        # its neighbour classes with multiplicity, and the iteration after which all of them
+        # stay on their chains.
+        self._trajectory_keys = _Buffer(np.int64)
+        self._trajectory_bases = _Buffer(np.int64)
+        self._adjacency_ptr = _Buffer(np.int64, np.zeros(1))
+        self._adjacency = _Buffer(np.int64)
+        self._ready = _Buffer(np.int64)
+        self._self_similarity = _Buffer(np.float64)
+        self._blocks: list[_Block] = []
+
+    def __len__(self) -> int:
+        return len(self._self_similarity)
+
+    def add(self, graph: LabelledGraph) -> int:
+        """Store ``graph``; returns its row (add order)."""
+        self._store(self._relabel(graph, add=True))
+        return len(self) - 1
+
+    def query(self, graph: LabelledGraph) -> np.ndarray:
+        """Normalised kernel values of ``graph`` against every stored graph; changes nothing."""
+        return self._scores(self._relabel(graph, add=False))
+
+    def add_and_query(self, graph: LabelledGraph) -> np.ndarray:
+        """Scores against the graphs stored before it (as ``query``), then stores it."""
+        relabelled = self._relabel(graph, add=True)
+        scores = self._scores(relabelled)
+        self._store(relabelled)
+        return scores
+
+    # -- relabelling ---------------------------------------------------------------------------
+
+    def _relabel(self, graph: LabelledGraph, add: bool) -> _Relabelled:
+        h = self.iterations
+        ref = _refine(graph, h)
+        s = ref.stable
+        final, final_reps = ref.partitions[-1], ref.representatives[-1]
+        k = len(final_reps)
+        offset = len(self._ready)
+        columns_labels = np.full((k, self._width), -1, dtype=np.int64)
+        columns_starts = np.zeros((k, self._width), dtype=bool)
+
+        reps = ref.representatives[0]
+        labels = np.full(len(reps), -1, dtype=np.int64)
+        found = list(map(self._initial.get, ref.labels[reps].tolist()))
+        hit = np.array([f is not None for f in found], dtype=bool)
+        labels[hit] = [f for f in found if f is not None]
+        if add and not hit.all():
+            missing = np.flatnonzero(~hit)
+            labels[missing] = self._create(missing, 0, s, offset)
+            self._initial.update(
+                zip(ref.labels[reps[missing]].tolist(), labels[missing].tolist(), strict=True)
+            )
+        starts = np.ones(len(reps), dtype=bool)
+        self._record(columns_labels, columns_starts, ref, 0, labels, starts)
+        # Neighbour units of the final classes, fixed from iteration s on.
+        final_seg, final_nodes = _ranges(ref.indptr[final_reps], np.diff(ref.indptr)[final_reps])
+        final_neighbour_units = final[ref.indices[final_nodes]]
+        for t in range(1, h + 1):
+            previous_partition = ref.partitions[min(t - 1, s)]
+            reps = ref.representatives[min(t, s)]
+            if t > s:
+                seg, neighbour_units, parent = final_seg, final_neighbour_units, np.arange(k)
+            else:
+                seg, nodes = _ranges(ref.indptr[reps], np.diff(ref.indptr)[reps])
+                neighbour_units, parent = previous_partition[ref.indices[nodes]], previous_partition[reps]
+            prev = labels[parent]
+            neighbour_labels = _sort_segments(seg, labels[neighbour_units])
+            degree = np.diff(ref.indptr)[reps]
+            labels, starts = self._step(t, s, offset, add, prev, seg, neighbour_labels, degree)
+            self._record(columns_labels, columns_starts, ref, t, labels, starts)
+            if t >= s and self._settled(t, offset, add, labels, starts, final_seg, final_neighbour_units):
+                alive = labels >= 0
+                steps = np.arange(1, h - t + 1, dtype=np.int64)
+                columns_labels[:, t + 1 :] = np.where(alive[:, None], labels[:, None] + steps, -1)
+                break
+        keys, counts = self._runs(columns_labels, columns_starts, np.bincount(final, minlength=k))
+        if not add:
+            empty = np.zeros(0, dtype=np.int64)
+            return _Relabelled(keys, counts, ref.self_similarity, empty, empty, empty, empty, empty)
+        return self._trajectory(
+            ref, columns_labels, columns_starts, final_seg, final_neighbour_units, keys, counts, offset
+        )
+
+    def _create(self, units: np.ndarray, t: int, s: int, offset: int) -> np.ndarray:
+        """New chain-start labels of ``units`` at iteration t: chains to h anchored at the unit's global
+        class once the partition is final (t >= s), else single labels."""
+        first = len(self._chain_length)
+        final = t >= s
+        self._chain_length.extend(
+            np.full(len(units), self.iterations - t + 1 if final else 1, dtype=np.int64)
+        )
+        self._chain_anchor.extend(units + offset if final else np.full(len(units), -1, dtype=np.int64))
+        return np.arange(first, first + len(units), dtype=np.int64) * self._width
+
+    def _record(
+        self,
+        columns_labels: np.ndarray,
+        columns_starts: np.ndarray,
+        ref: _Refinement,
+        t: int,
+        labels: np.ndarray,
+        starts: np.ndarray,
+    ) -> None:
+        """Store iteration t's unit labels per final class (unit of its representative)."""
+        units = ref.partitions[min(t, ref.stable)][ref.representatives[-1]]
+        columns_labels[:, t] = labels[units]
+        columns_starts[:, t] = starts[units]
+
+    def _step(
+        self,
+        t: int,
+        s: int,
+        offset: int,
+        add: bool,
+        prev: np.ndarray,
+        seg: np.ndarray,
+        neighbour_labels: np.ndarray,
+        degree: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Labels at iteration t of units with previous labels ``prev`` and sorted neighbour labels."""
+        width = self._width
+        n = len(prev)
+        labels = np.full(n, -1, dtype=np.int64)
+        starts = np.zeros(n, dtype=bool)
+        alive = prev >= 0
+        chain = np.where(alive, prev // width, 0)
+        position = prev - chain * width
+        anchor = self._chain_anchor.view()[chain] if len(self._chain_anchor) else np.zeros(n, np.int64)
+        length = self._chain_length.view()[chain] if len(self._chain_length) else np.zeros(n, np.int64)
+        own = alive & (anchor >= offset) if add else np.zeros(n, dtype=bool)
+        labels[own] = prev[own] + 1
+        work = alive & ~own
+        if not add:
+            # A neighbour without a stored label: the signature cannot be stored anywhere.
+            work &= np.bincount(seg[neighbour_labels < 0], minlength=n) == 0
+        candidate = np.flatnonzero(work & (anchor >= 0) & (position + 1 < length))
+        offsets = np.cumsum(degree) - degree
+        passed = self._continues(candidate, anchor[candidate], t - 1, offsets, degree, neighbour_labels)
+        labels[passed] = prev[passed] + 1
+        work[passed] = False
+        rest = np.flatnonzero(work)
+        if rest.size:
+            keys = self._signature_keys(rest, prev, offsets, degree, neighbour_labels)
+            found = list(map(self._signatures.get, keys))
+            hit = np.array([f is not None for f in found], dtype=bool)
+            labels[rest[hit]] = [f for f in found if f is not None]
+            starts[rest[hit]] = True
+            if add and not hit.all():
+                missing = rest[~hit]
+                labels[missing] = self._create(missing, t, s, offset)
+                starts[missing] = True
+                new_keys = [key for key, h in zip(keys, hit.tolist(), strict=True) if not h]
+                self._signatures.update(zip(new_keys, labels[missing].tolist(), strict=True))
+        return labels, starts
+
+    def _signature_keys(
+        self,
+        units: np.ndarray,
+        prev: np.ndarray,
+        offsets: np.ndarray,
+        degree: np.ndarray,
+        neighbour_labels: np.ndarray,
+    ) -> list[bytes]:
+        """(previous label, sorted neighbour labels) of ``units`` as int64 bytes, the dictionary key."""
+        sizes = degree[units] + 1
+        begin = np.cumsum(sizes) - sizes
+        flat = np.empty(int(sizes.sum()), dtype=np.int64)
+        flat[begin] = prev[units]
+        flat[_ranges(begin + 1, degree[units])[1]] = neighbour_labels[
+            _ranges(offsets[units], degree[units])[1]
+        ]
+        buffer = flat.tobytes()
+        return [buffer[8 * b : 8 * (b + z)] for b, z in zip(begin.tolist(), sizes.tolist(), strict=True)]
+
+    def _labels_at(self, classes: np.ndarray, t: int) -> np.ndarray:
+        """Labels at iteration t of stored global classes (t >= their graph's stable iteration)."""
+        keys = self._trajectory_keys.view()
+        index = np.searchsorted(keys, classes * self._width + t, side="right") - 1
+        return self._trajectory_bases.view()[index] + (t - keys[index] % self._width)
+
+    def _continues(
+        self,
+        units: np.ndarray,
+        anchors: np.ndarray,
+        t: int,
+        offsets: np.ndarray,
+        degree: np.ndarray,
+        neighbour_labels: np.ndarray,
+    ) -> np.ndarray:
+        """The ``units`` whose neighbour multiset at iteration t equals their chain anchor's."""
+        ptr = self._adjacency_ptr.view()
+        anchor_degree = ptr[anchors + 1] - ptr[anchors]
+        same = degree[units] == anchor_degree
+        units, anchors, anchor_degree = units[same], anchors[same], anchor_degree[same]
+        if units.size == 0:
+            return units
+        seg, index = _ranges(offsets[units], degree[units])
+        ours = neighbour_labels[index]
+        anchor_seg, anchor_index = _ranges(ptr[anchors], anchor_degree)
+        theirs = _sort_segments(anchor_seg, self._labels_at(self._adjacency.view()[anchor_index], t))
+        mismatches = np.bincount(seg[ours != theirs], minlength=len(units))
+        return units[mismatches == 0]
+
+    def _settled(
+        self,
+        t: int,
+        offset: int,
+        add: bool,
+        labels: np.ndarray,
+        starts: np.ndarray,
+        seg: np.ndarray,
+        neighbour_units: np.ndarray,
+    ) -> bool:
+        """Whether the labels from iteration t on just advance along their chains (module docstring);
+        t >= s, so the units are the final classes and ``neighbour_units`` their neighbours' classes."""
+        if starts.any():
+            return False
+        alive = labels >= 0
+        chain = labels[alive] // self._width
+        anchors = self._chain_anchor.view()[chain]
+        followed = anchors < offset if add else np.ones(len(chain), dtype=bool)
+        if not followed.any():
+            return True
+        follower = np.zeros(len(labels), dtype=bool)
+        follower[np.flatnonzero(alive)[followed]] = True
+        if not follower[neighbour_units[follower[seg]]].all():
+            return False
+        return bool((self._ready.view()[anchors[followed]] <= t - 1).all())
+
+    def _runs(
+        self, labels: np.ndarray, starts: np.ndarray, sizes: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Column keys chain * (h + 2) + run length, with counts, of the class label rows."""
+        alive = labels >= 0
+        flat_starts = starts[alive]
+        run = np.cumsum(flat_starts) - 1
+        lengths = np.bincount(run) if len(run) else np.zeros(0, dtype=np.int64)
+        chains = labels[alive][flat_starts] // self._width
+        counts = np.repeat(sizes, alive.sum(axis=1))[flat_starts]
+        keys, inverse = np.unique(chains * (self._width + 1) + lengths, return_inverse=True)
+        return keys, np.bincount(inverse.reshape(-1), weights=counts).astype(np.int64)
+
+    def _trajectory(
+        self,
+        ref: _Refinement,
+        labels: np.ndarray,
+        starts: np.ndarray,
+        seg: np.ndarray,
+        neighbour_units: np.ndarray,
+        keys: np.ndarray,
+        counts: np.ndarray,
+        offset: int,
+    ) -> _Relabelled:
+        s, width = ref.stable, self._width
+        k = len(labels)
+        # Segments from iteration s: always one at s, then one per chain start.
+        begins = starts[:, s:].copy()
+        begins[:, 0] = True
+        cls, when = np.nonzero(begins)
+        trajectory_keys = (cls + offset) * width + when + s
+        trajectory_bases = labels[cls, when + s]
+        settle = np.zeros(k, dtype=np.int64)
+        np.maximum.at(settle, cls, when + s)
+        degree = np.bincount(seg, minlength=k)
+        ready = np.full(k, -1, dtype=np.int64)
+        if len(seg):
+            np.maximum.at(ready, seg, settle[neighbour_units])
+        return _Relabelled(
+            keys,
+            counts,
+            ref.self_similarity,
+            trajectory_keys,
+            trajectory_bases,
+            degree,
+            neighbour_units + offset,
+            ready,
+        )
+
+    # -- storage and scoring -------------------------------------------------------------------
+
+    def _store(self, r: _Relabelled) -> None:
+        row = len(self)
+        self._trajectory_keys.extend(r.trajectory_keys)
+        self._trajectory_bases.extend(r.trajectory_bases)
+        self._adjacency_ptr.extend(self._adjacency_ptr.view()[-1] + np.cumsum(r.adjacency_lengths))
+        self._adjacency.extend(r.adjacency)
+        self._ready.extend(r.ready)
+        self._self_similarity.extend(np.array([r.self_similarity]))
+        self._blocks.append(_make_block(r.keys, np.full(len(r.keys), row, dtype=np.int64), r.counts, 1))
+        while len(self._blocks) >= 2 and self._blocks[-2].graphs <= self._blocks[-1].graphs:
+            last, before = self._blocks.pop(), self._blocks.pop()
+            keys, graph_ids, counts = (
+                np.concatenate(pair)
+                for pair in zip(_block_postings(before), _block_postings(last), strict=True)
+            )
+            self._blocks.append(_make_block(keys, graph_ids, counts, before.graphs + last.graphs))
+
+    def _scores(self, r: _Relabelled) -> np.ndarray:
+        n = len(self)
+        raw = np.zeros(n, dtype=np.float64)
+        radix = self._width + 1
+        chains, run_lengths = r.keys // radix, r.keys % radix
+        low = chains * radix
+        for block in self._blocks:
+            begin = np.searchsorted(block.keys, low)
+            matches = np.searchsorted(block.keys, low + radix) - begin
+            hit = np.flatnonzero(matches)
+            if hit.size == 0:
+                continue
+            owner, rows = _ranges(begin[hit], matches[hit])
+            owner = hit[owner]
+            stored_lengths = block.keys[rows] - low[owner]
+            weights = r.counts[owner] * np.minimum(run_lengths[owner], stored_lengths)
+            # rows are sorted (keys and blocks are); a chain met by several runs repeats its rows.
+            first = np.ones(len(rows), dtype=bool)
+            first[1:] = rows[1:] != rows[:-1]
+            unique_rows = rows[first]
+            summed = np.add.reduceat(weights.astype(np.float64), np.flatnonzero(first))
+            contribution = block.matrix[unique_rows].T @ summed
+            raw[: len(contribution)] += contribution
+        norms = np.sqrt(r.self_similarity * self._self_similarity.view())
+        out = np.zeros(n, dtype=np.float64)
+        np.divide(raw, norms, out=out, where=norms > 0)
+        return out
+
+    # -- checkpoints ---------------------------------------------------------------------------
+
+    def state(self) -> dict[str, np.ndarray]:
+        """All state as flat arrays (``np.savez``-able); ``from_state`` restores it."""
+        signatures = list(self._signatures.items())
+        key_data = b"".join(key for key, _ in signatures)
+        postings = [_block_postings(b) for b in self._blocks]
+        keys, graph_ids, counts = (
+            (np.concatenate(p) for p in zip(*postings, strict=True))
+            if postings
+            else (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
+        )
+        return {
+            "iterations": np.array([self.iterations], dtype=np.int64),
+            "initial_keys": np.array(list(self._initial.keys()), dtype=np.int64),
+            "initial_values": np.array(list(self._initial.values()), dtype=np.int64),
+            "signature_data": np.frombuffer(key_data, dtype=np.int64).copy(),
+            "signature_sizes": np.array([len(key) // 8 for key, _ in signatures], dtype=np.int64),
+            "signature_values": np.array([v for _, v in signatures], dtype=np.int64),
+            "chain_length": self._chain_length.view().copy(),
+            "chain_anchor": self._chain_anchor.view().copy(),
+            "trajectory_keys": self._trajectory_keys.view().copy(),
+            "trajectory_bases": self._trajectory_bases.view().copy(),
+            "adjacency_ptr": self._adjacency_ptr.view().copy(),
+            "adjacency": self._adjacency.view().copy(),
+            "ready": self._ready.view().copy(),
+            "self_similarity": self._self_similarity.view().copy(),
+            "posting_keys": keys,
+            "posting_graphs": graph_ids,
+            "posting_counts": np.asarray(counts, dtype=np.float64),
+        }
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, np.ndarray]) -> WLKernel:
+        kernel = cls(int(state["iterations"][0]))
+        kernel._initial = dict(
+            zip(state["initial_keys"].tolist(), state["initial_values"].tolist(), strict=True)
+        )
+        data = np.ascontiguousarray(state["signature_data"], dtype=np.int64).tobytes()
+        sizes = state["signature_sizes"].astype(np.int64)
+        begins = (np.cumsum(sizes) - sizes).tolist()
+        kernel._signatures = {
+            data[8 * b : 8 * (b + z)]: v
+            for b, z, v in zip(begins, sizes.tolist(), state["signature_values"].tolist(), strict=True)
+        }
+        kernel._chain_length = _Buffer(np.int64, state["chain_length"])
+        kernel._chain_anchor = _Buffer(np.int64, state["chain_anchor"])
+        kernel._trajectory_keys = _Buffer(np.int64, state["trajectory_keys"])
+        kernel._trajectory_bases = _Buffer(np.int64, state["trajectory_bases"])
+        kernel._adjacency_ptr = _Buffer(np.int64, state["adjacency_ptr"])
+        kernel._adjacency = _Buffer(np.int64, state["adjacency"])
+        kernel._ready = _Buffer(np.int64, state["ready"])
+        kernel._self_similarity = _Buffer(np.float64, state["self_similarity"])
+        if len(kernel):
+            kernel._blocks = [
+                _make_block(
+                    state["posting_keys"].astype(np.int64),
+                    state["posting_graphs"].astype(np.int64),
+                    state["posting_counts"],
+                    len(kernel),
+                )
+            ]
+        return kernel
+
+
+# -- grakel: the exact baseline and test oracle ---------------------------------------------------
+
+
+def to_grakel(graph: LabelledGraph) -> tuple[dict[int, dict[int, float]], dict[int, int]]:
+    """grakel input ``(edge dictionary, node labels)``; every node is a key, isolated ones too."""
+    edges: dict[int, dict[int, float]] = {node: {} for node in range(graph.num_nodes)}
+    for a, b in np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2).tolist():
+        edges[a][b] = 1.0
+        edges[b][a] = 1.0
+    return edges, dict(enumerate(np.asarray(graph.labels).tolist()))
+
+
+def grakel_kernel_matrix(graphs: Sequence[LabelledGraph], iterations: int) -> np.ndarray:
+    """grakel's normalised WL kernel matrix (h = ``iterations``); graphs without nodes get 0 rows."""
+    from grakel.kernels import VertexHistogram, WeisfeilerLehman
+
+    out = np.zeros((len(graphs), len(graphs)))
+    keep = [i for i, g in enumerate(graphs) if g.num_nodes > 0]
+    if not keep:
+        return out
+    kernel = (
+        WeisfeilerLehman(n_iter=iterations, base_graph_kernel=VertexHistogram, normalize=True)
+        if iterations > 0
+        else VertexHistogram(normalize=True)
+    )
+    out[np.ix_(keep, keep)] = kernel.fit_transform([to_grakel(graphs[i]) for i in keep])
+    return out
+
+
+class GrakelWL:
+    """The same API on grakel, refitted on every stored graph at each query (slow, exact)."""
+
+    def __init__(self, iterations: int) -> None:
+        if iterations < 0:
+            raise ValueError(f"iterations must be >= 0, got {iterations}")
+        self.iterations = iterations
+        self._graphs: list[LabelledGraph] = []
+
+    def __len__(self) -> int:
+        return len(self._graphs)
+
+    def add(self, graph: LabelledGraph) -> int:
+        self._graphs.append(graph)
+        return len(self._graphs) - 1
+
+    def query(self, graph: LabelledGraph) -> np.ndarray:
+        if not self._graphs:
+            return np.zeros(0)
+        return grakel_kernel_matrix([*self._graphs, graph], self.iterations)[-1, :-1]
+
+    def add_and_query(self, graph: LabelledGraph) -> np.ndarray:
+        scores = self.query(graph)
+        self.add(graph)
+        return scores
+
+    def state(self) -> dict[str, np.ndarray]:
+        graphs = self._graphs
+        edges = [np.asarray(g.edges, np.int64).reshape(-1, 2) for g in graphs]
+        return {
+            "iterations": np.array([self.iterations], dtype=np.int64),
+            "node_counts": np.array([g.num_nodes for g in graphs], dtype=np.int64),
+            "edge_counts": np.array([len(e) for e in edges], dtype=np.int64),
+            "labels": np.concatenate(
+                [np.zeros(0, np.int64), *(np.asarray(g.labels, np.int64) for g in graphs)]
+            ),
+            "kinds": np.concatenate(
+                [np.zeros(0, np.int64), *(np.asarray(g.kinds, np.int64) for g in graphs)]
+            ),
+            "edges": np.concatenate([np.zeros((0, 2), np.int64), *edges]),
+        }
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, np.ndarray]) -> GrakelWL:
+        kernel = cls(int(state["iterations"][0]))
+        nodes = np.cumsum(state["node_counts"])[:-1]
+        edges = np.cumsum(state["edge_counts"])[:-1]
+        for labels, kinds, pairs in zip(
+            np.split(state["labels"], nodes),
+            np.split(state["kinds"], nodes),
+            np.split(state["edges"].reshape(-1, 2), edges),
+            strict=True,
+        ):
+            kernel.add(LabelledGraph(labels=labels, edges=pairs, kinds=kinds))
+        return kernel
