@@ -5,6 +5,11 @@ Keyframes are every frame at least ``--keyframe-period`` seconds after the previ
 apart). Each keyframe gets ORB features and objects, then goes to the detector; its best candidate
 is scored against the ground truth as described in ``eval.lcd_metrics``. Timing is per keyframe,
 split into features, objects and the detector itself.
+
+Several detectors (``--detector a,b,c``) share one pass: every keyframe's features and objects are
+computed once and fed to each, so they are compared on identical inputs (the ablation table).
+A detector or object detector that raises costs only that keyframe (logged and counted in
+``loop_detector_failures`` / ``object_detector_failures``), never the run.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ import argparse
 import csv
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,16 +36,12 @@ from eval.lcd_metrics import (
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.datasets import Dataset, open_dataset
 from frontends.datasets.cli import add_dataset_arguments
-from frontends.errors import ConfigError, SymbioError
+from frontends.errors import ConfigError
 from frontends.types import DetectedObject, Frame, Keyframe
-from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector, ObjectDetector
+from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopCandidate, LoopDetector, ObjectDetector
 from lcd.features import OrbConfig, extract_orb
 
 log = logging.getLogger(__name__)
-
-
-class DetectorFailure(SymbioError):
-    """A loop detector raised while processing a keyframe."""
 
 
 @dataclass
@@ -60,6 +61,7 @@ class QueryRecord:
 class LcdRun:
     records: list[QueryRecord] = field(default_factory=list)
     object_failures: int = 0
+    loop_detector_failures: int = 0
     keyframes: int = 0
 
 
@@ -86,68 +88,85 @@ def detect_objects(detector: ObjectDetector, frame: Frame, run: LcdRun) -> tuple
         return ()
 
 
+def propose_loops(
+    detector: LoopDetector, keyframe: Keyframe, frame: Frame, run: LcdRun
+) -> list[LoopCandidate]:
+    """A failing loop detector costs this query its candidates, not the run (counted and logged)."""
+    try:
+        return detector.add(keyframe)
+    except Exception as exc:  # plugin boundary, like object detectors
+        run.loop_detector_failures += 1
+        log.warning(
+            "loop detector %s failed on keyframe %d (%s): %r; the query counts as unanswered",
+            detector.name,
+            keyframe.id,
+            frame.path or f"frame {frame.index}",
+            exc,
+        )
+        return []
+
+
 def run_lcd(
     dataset: Dataset,
-    detector: LoopDetector,
+    detectors: Sequence[LoopDetector],
     objects: ObjectDetector,
     orb: OrbConfig,
     keyframe_period: float,
     tolerance: int,
     progress: bool = True,
-) -> LcdRun:
+) -> list[LcdRun]:
+    """One run per detector; every keyframe's features and objects are computed once for all."""
     pairs, _ = dataset.loop_pairs()
     if pairs is None:
         raise ConfigError(f"{dataset.root}: no ground-truth loops (no loop-pairs file and no GT poses)")
     references = gt_references(pairs)
-    run = LcdRun()
+    runs = [LcdRun() for _ in detectors]
+    object_failures = LcdRun()
     seen_frames: list[int] = []
-    frames = keyframes_of(dataset, keyframe_period)
-    for frame in tqdm(frames, disable=not progress, unit="kf", desc=f"lcd {detector.name}"):
+    names = ",".join(d.name for d in detectors)
+    for frame in tqdm(
+        keyframes_of(dataset, keyframe_period), disable=not progress, unit="kf", desc=f"lcd {names}"
+    ):
         tick = time.perf_counter()
         keypoints, descriptors = extract_orb(frame.gray, orb)
         tock = time.perf_counter()
-        found = detect_objects(objects, frame, run)
+        found = detect_objects(objects, frame, object_failures)
         tuck = time.perf_counter()
         pose = frame.gt_pose if frame.gt_pose is not None else np.eye(4)
         keyframe = Keyframe(
-            run.keyframes, frame.index, frame.timestamp, pose, keypoints, descriptors, found, frame.image
+            len(seen_frames), frame.index, frame.timestamp, pose, keypoints, descriptors, found, frame.image
         )
-        try:
-            candidates = detector.add(keyframe)
-        except SymbioError:
-            raise
-        except Exception as exc:
-            raise DetectorFailure(
-                f"loop detector {detector.name!r} failed on keyframe {run.keyframes} "
-                f"({frame.path or frame.index}): {exc!r}"
-            ) from exc
-        done = time.perf_counter()
         refs = references.get(frame.index)
-        if candidates:
-            best = candidates[0]
-            match_frame = seen_frames[best.match]
-            score, correct = float(best.score), is_true_match(match_frame, refs, tolerance)
-        else:
-            match_frame, score, correct = -1, float("-inf"), False
-        # Which earlier keyframes the detector could have proposed: those outside its window.
-        window = int(getattr(detector, "temporal_window", 0))
-        eligible = seen_frames[: max(0, len(seen_frames) - window)]
-        run.records.append(
-            QueryRecord(
-                run.keyframes,
-                frame.index,
-                match_frame,
-                score,
-                correct,
-                has_reachable_loop(refs, eligible, tolerance),
-                1e3 * (tock - tick),
-                1e3 * (tuck - tock),
-                1e3 * (done - tuck),
+        for detector, run in zip(detectors, runs, strict=True):
+            start = time.perf_counter()
+            candidates = propose_loops(detector, keyframe, frame, run)
+            done = time.perf_counter()
+            if candidates:
+                best = candidates[0]
+                match_frame = seen_frames[best.match]
+                score, correct = float(best.score), is_true_match(match_frame, refs, tolerance)
+            else:
+                match_frame, score, correct = -1, float("-inf"), False
+            # Which earlier keyframes the detector could have proposed: those outside its window.
+            window = int(getattr(detector, "temporal_window", 0))
+            eligible = seen_frames[: max(0, len(seen_frames) - window)]
+            run.records.append(
+                QueryRecord(
+                    keyframe.id,
+                    frame.index,
+                    match_frame,
+                    score,
+                    correct,
+                    has_reachable_loop(refs, eligible, tolerance),
+                    1e3 * (tock - tick),
+                    1e3 * (tuck - tock),
+                    1e3 * (done - start),
+                )
             )
-        )
+            run.keyframes += 1
+            run.object_failures = object_failures.object_failures
         seen_frames.append(frame.index)
-        run.keyframes += 1
-    return run
+    return runs
 
 
 def figures_of(run: LcdRun, threshold: float) -> dict[str, Any]:
@@ -167,32 +186,45 @@ def figures_of(run: LcdRun, threshold: float) -> dict[str, Any]:
             figures[f"{name}_p95"] = float(np.percentile(values, 95))
     figures["keyframes"] = run.keyframes
     figures["object_detector_failures"] = run.object_failures
+    figures["loop_detector_failures"] = run.loop_detector_failures
     return figures
 
 
-def write_queries_csv(path: Path, run: LcdRun) -> None:
+def write_queries_csv(path: Path, runs: dict[str, LcdRun]) -> None:
     with open(path, "w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["keyframe", "frame", "match_frame", "score", "correct", "has_loop"])
-        for r in run.records:
-            writer.writerow(
-                [r.keyframe, r.frame, r.match_frame, f"{r.score:.6f}", int(r.correct), int(r.has_loop)]
-            )
+        writer.writerow(["detector", "keyframe", "frame", "match_frame", "score", "correct", "has_loop"])
+        for name, run in runs.items():
+            for r in run.records:
+                writer.writerow(
+                    [
+                        name,
+                        r.keyframe,
+                        r.frame,
+                        r.match_frame,
+                        f"{r.score:.6f}",
+                        int(r.correct),
+                        int(r.has_loop),
+                    ]
+                )
 
 
-def plot_pr(path: Path, run: LcdRun, title: str) -> None:
+def plot_pr(path: Path, runs: dict[str, LcdRun], title: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scores = np.array([r.score for r in run.records])
-    correct = np.array([r.correct for r in run.records])
-    _, precision, recall = precision_recall_curve(scores, correct, sum(r.has_loop for r in run.records))
     fig, ax = plt.subplots(figsize=(5, 4))
-    ax.plot(recall, precision, drawstyle="steps-post")
+    for name, run in runs.items():
+        scores = np.array([r.score for r in run.records])
+        correct = np.array([r.correct for r in run.records])
+        positives = sum(r.has_loop for r in run.records)
+        _, precision, recall = precision_recall_curve(scores, correct, positives)
+        ax.plot(recall, precision, drawstyle="steps-post", label=name)
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
     ax.grid(alpha=0.3)
+    ax.legend(loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -212,7 +244,10 @@ def add_lcd_parser(subparsers: Any) -> None:
     )
     add_dataset_arguments(parser)
     parser.add_argument(
-        "--detector", default="symbiolcd2", help="loop detector name (see `symbio detectors`)"
+        "--detector",
+        default="symbiolcd2",
+        help="loop detector name (see `symbio detectors`), or several comma separated: one pass over "
+        "the dataset, features and objects computed once, a comparison table",
     )
     parser.add_argument(
         "--object-detector", help="object detector (default: oracle on synthetic scenes, else ssd-mobilenet)"
@@ -220,6 +255,11 @@ def add_lcd_parser(subparsers: Any) -> None:
     parser.add_argument("--tolerance", type=int, default=0, help="frames a match may be off a GT reference")
     parser.add_argument("--keyframe-period", type=float, default=0.2, help="seconds between keyframes")
     parser.add_argument("--config", type=Path, help="YAML of the loop detector's config")
+    parser.add_argument(
+        "--wl-backend",
+        choices=("ours", "grakel"),
+        help="symbiolcd2 detectors: the WL kernel implementation (grakel: the slow reference)",
+    )
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -255,25 +295,57 @@ def run_lcd_command(args: argparse.Namespace) -> int:
     from frontends.config import load_config
 
     dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
-    detector = LOOP_DETECTORS.load(args.detector)(args.overrides, args.config)
+    overrides = list(args.overrides)
+    if args.wl_backend:
+        overrides.append(f"wl_backend={args.wl_backend}")
+    names = [name.strip() for name in args.detector.split(",") if name.strip()]
+    if not names or len(set(names)) != len(names):
+        raise ConfigError(f"--detector {args.detector!r}: give distinct detector names, comma separated")
+    detectors = [LOOP_DETECTORS.load(name)(overrides, args.config) for name in names]
     object_name = args.object_detector or default_object_detector(dataset)
     objects = OBJECT_DETECTORS.load(object_name)(args.object_overrides)
     orb = load_config(OrbConfig, None, args.orb_overrides)
-    run = run_lcd(dataset, detector, objects, orb, args.keyframe_period, args.tolerance, not args.no_progress)
-    figures = {
-        "detector": args.detector,
-        "object_detector": object_name,
-        "tolerance": args.tolerance,
-        **figures_of(run, detector.threshold),
+    runs = run_lcd(
+        dataset, detectors, objects, orb, args.keyframe_period, args.tolerance, not args.no_progress
+    )
+    results = {
+        name: {
+            "detector": name,
+            "object_detector": object_name,
+            "tolerance": args.tolerance,
+            **figures_of(run, detector.threshold),
+        }
+        for name, detector, run in zip(names, detectors, runs, strict=True)
     }
-    print(f"eval lcd: {args.detector} on {dataset.root} ({dataset.format_name}, {run.keyframes} keyframes)")
-    print_figures(figures)
+    print(f"eval lcd on {dataset.root} ({dataset.format_name}, {runs[0].keyframes} keyframes)")
+    if len(names) == 1:
+        print_figures(results[names[0]])
+        write_json(args.json, results[names[0]])
+    else:
+        print(comparison_table(results))
+        write_json(
+            args.json, {f"{name}.{k}": v for name, figures in results.items() for k, v in figures.items()}
+        )
     if args.csv:
-        write_queries_csv(args.csv, run)
+        write_queries_csv(args.csv, dict(zip(names, runs, strict=True)))
     if args.plot:
-        plot_pr(args.plot, run, f"{args.detector} on {dataset.root.name}")
-    write_json(args.json, figures)
+        plot_pr(args.plot, dict(zip(names, runs, strict=True)), dataset.root.name)
     return 0
+
+
+COMPARED = ("recall_at_100p", "auc_pr", "precision", "recall", "ms_detector_p50", "loop_detector_failures")
+
+
+def comparison_table(results: dict[str, dict[str, Any]]) -> str:
+    """A markdown table of the main figures, one row per detector."""
+    lines = ["| detector | " + " | ".join(COMPARED) + " |", "|---" * (len(COMPARED) + 1) + "|"]
+    for name, figures in results.items():
+        cells = [
+            f"{figures[key]:.3f}" if isinstance(figures[key], float) else str(figures[key])
+            for key in COMPARED
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def add_parser(subparsers: Any) -> None:

@@ -36,10 +36,11 @@ class Registry(Generic[T]):
         return str(self._entry_points()[name].value)
 
     def load(self, name: str) -> T:
-        if name in self._builtins:
-            module, _, attribute = self._builtins[name].partition(":")
+        if name not in self._builtins and name not in self._entry_points():
+            raise ConfigError(f"unknown {self.kind} {name!r}; installed: {', '.join(self.names())}")
+        origin = self.origin(name)
+        module, _, attribute = origin.partition(":")
+        try:  # a broken plugin package must not surface as a bare ImportError
             return getattr(importlib.import_module(module), attribute)
-        plugins = self._entry_points()
-        if name in plugins:
-            return plugins[name].load()
-        raise ConfigError(f"unknown {self.kind} {name!r}; installed: {', '.join(self.names())}")
+        except (ImportError, AttributeError) as exc:
+            raise ConfigError(f"{self.kind} {name!r} ({origin}) could not be loaded: {exc}") from exc

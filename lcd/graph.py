@@ -6,8 +6,12 @@ label, tier 3 connects the features within ``x`` px outside the box edges to the
 
 Our interpretation of what the paper leaves open (measured in the README):
 - WL needs discrete labels. An object node is labelled by its class. A feature node is labelled by
-  its visual word at a coarse level of the vocabulary tree (``word_level``) — the "vBoW" node
-  feature — plus, in tier 2, the class of its object. Tier-3 nodes carry the word only.
+  its visual word (the "vBoW" node feature; ``SymbioLCD2Config.word_level`` picks the tree level).
+  Tier 2 "inherits the object's label" through its edge: WL's first iteration relabels a feature
+  by (word, its anchor's class), so features of the same word in the same kind of object match
+  from iteration 1 on. Putting the class (and the tier) into the feature's own label instead
+  (``feature_label="tier"``) makes one missed detection change the labels of all the features in
+  the box, and measured worse with 30 % missed objects (README, "our interpretation").
 - WL ignores edge labels, so each object-object edge is split by a node labelled with the
   normalised distance bin (the standard edge-label-to-node transform); distances are divided by
   the mean distance between the objects of the image, which makes them scale invariant.
@@ -25,6 +29,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import networkx as nx
 import numpy as np
@@ -57,6 +62,10 @@ class GraphConfig:
     background: bool = True
     #: Fewer objects than this: the keyframe is counted as object-poor (reported, not rejected).
     min_objects: int = 2
+    #: Feature nodes' own labels: "word" = the visual word only, whatever the tier (the object's
+    #: class reaches a feature through its edge at WL iteration 1); "tier" = word + tier + the class
+    #: of the object for tier 2 (a missed detection then changes the feature's own label).
+    feature_label: Literal["word", "tier"] = "word"
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,12 @@ def node_label(kind: int, class_name: str | None = None, word: int = 0) -> int:
 def _words_labels(kind: int, words: np.ndarray, class_name: str | None) -> np.ndarray:
     base = node_label(kind, class_name, 0)
     return base | (words.astype(np.int64) & 0xFFFFFF)
+
+
+def _feature_labels(kind: int, words: np.ndarray, class_name: str | None, config: GraphConfig) -> np.ndarray:
+    if config.feature_label == "word":
+        return _words_labels(BACKGROUND, words, None)
+    return _words_labels(kind, words, class_name)
 
 
 def build_graph(
@@ -145,13 +160,13 @@ def build_graph(
             for indices, kind, class_name in members:
                 if indices.size == 0:
                     continue
-                ids = add_nodes(_words_labels(kind, words[indices], class_name), kind)
+                ids = add_nodes(_feature_labels(kind, words[indices], class_name, config), kind)
                 edges.append(np.column_stack([np.full(len(ids), object_id), ids]))
                 attached[indices] = True
     if config.background or not use_objects:
         loose = np.flatnonzero(~attached)
         if loose.size:
-            ids = add_nodes(_words_labels(BACKGROUND, words[loose], None), BACKGROUND)
+            ids = add_nodes(_feature_labels(BACKGROUND, words[loose], None, config), BACKGROUND)
             edges.append(np.column_stack([np.zeros(len(ids), dtype=np.int64), ids]))
     return LabelledGraph(
         labels=np.concatenate(labels),

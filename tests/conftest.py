@@ -38,3 +38,16 @@ def shared() -> Path:
     if not (root / "data").is_dir():
         pytest.skip(f"shared data not found at {root} (set SYMBIO_SHARED)")
     return root
+
+
+@pytest.fixture(scope="session")
+def small_loop_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 600-frame (20 s) 320x240 synthetic loop scene (TUM layout, GT objects and loops), made once."""
+    from frontends.synth import SynthConfig, write_scene
+
+    folder = tmp_path_factory.mktemp("synth") / "loop_320"
+    config = SynthConfig(
+        seed=3, trajectory="loop", frames=600, width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5
+    )
+    write_scene(config, folder, progress=False)
+    return folder

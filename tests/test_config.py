@@ -72,6 +72,16 @@ def test_registry_lists_and_loads() -> None:
         registry.load("nope")
 
 
+def test_registry_names_a_plugin_that_cannot_be_imported() -> None:
+    registry: Registry[object] = Registry(
+        "thing", "symbio.test_things", {"gone": "no_such_module:create", "typo": "pathlib:Pth"}
+    )
+    with pytest.raises(ConfigError, match=r"thing 'gone' \(no_such_module:create\) could not be loaded"):
+        registry.load("gone")
+    with pytest.raises(ConfigError, match="'typo'"):
+        registry.load("typo")
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [

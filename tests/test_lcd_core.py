@@ -54,11 +54,27 @@ def test_three_tier_graph_structure() -> None:
 
 
 def test_tier2_labels_carry_the_object_class_and_tier3_do_not() -> None:
-    graph = build_graph(KEYPOINTS, np.zeros(len(KEYPOINTS), dtype=int), OBJECTS)
-    inside = set(graph.labels[graph.kinds == INSIDE].tolist())
-    around = set(graph.labels[graph.kinds == AROUND].tolist())
+    tiered = build_graph(
+        KEYPOINTS, np.zeros(len(KEYPOINTS), dtype=int), OBJECTS, GraphConfig(feature_label="tier")
+    )
+    inside = set(tiered.labels[tiered.kinds == INSIDE].tolist())
+    around = set(tiered.labels[tiered.kinds == AROUND].tolist())
     assert len(inside) == 3  # chair, tv, cup: the same word, three classes
     assert len(around) == 1
+
+
+def test_word_labels_reach_the_class_through_the_anchor() -> None:
+    """Default: a feature's own label is its word; its anchor's class joins at WL iteration 1."""
+    graph = build_graph(KEYPOINTS, np.zeros(len(KEYPOINTS), dtype=int), OBJECTS)
+    features = np.isin(graph.kinds, [INSIDE, AROUND, BACKGROUND])
+    assert len(set(graph.labels[features].tolist())) == 1
+    anchors: dict[int, set[int]] = {}
+    for a, b in graph.edges.tolist():
+        for feature, anchor in ((a, b), (b, a)):
+            if graph.kinds[feature] == INSIDE:
+                anchors.setdefault(feature, set()).add(int(graph.labels[anchor]))
+    # the three boxes' features hang off three differently labelled anchors
+    assert len({frozenset(v) for v in anchors.values()}) == 3
 
 
 def test_ablations_and_no_objects() -> None:
