@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES = (
     "frontends.datasets.cli",
     "slam_backend.cli",
     "lcd.vocab_cli",
+    "lcd.symbiolcd_train",
     "eval.lcd_eval",
 )
 

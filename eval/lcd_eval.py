@@ -18,7 +18,7 @@ import argparse
 import csv
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,7 @@ from eval.lcd_metrics import (
 )
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.datasets import Dataset, open_dataset
+from frontends.datasets.base import every_period
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
 from frontends.types import DetectedObject, Frame, Keyframe
@@ -63,14 +64,6 @@ class LcdRun:
     object_failures: int = 0
     loop_detector_failures: int = 0
     keyframes: int = 0
-
-
-def keyframes_of(dataset: Dataset, period: float) -> Iterator[Frame]:
-    last = -np.inf
-    for frame in dataset:
-        if frame.timestamp - last >= period - 1e-9:
-            last = frame.timestamp
-            yield frame
 
 
 def detect_objects(detector: ObjectDetector, frame: Frame, run: LcdRun) -> tuple[DetectedObject, ...]:
@@ -125,7 +118,7 @@ def run_lcd(
     seen_frames: list[int] = []
     names = ",".join(d.name for d in detectors)
     for frame in tqdm(
-        keyframes_of(dataset, keyframe_period), disable=not progress, unit="kf", desc=f"lcd {names}"
+        every_period(dataset, keyframe_period), disable=not progress, unit="kf", desc=f"lcd {names}"
     ):
         tick = time.perf_counter()
         keypoints, descriptors = extract_orb(frame.gray, orb)
@@ -188,6 +181,15 @@ def figures_of(run: LcdRun, threshold: float) -> dict[str, Any]:
     figures["object_detector_failures"] = run.object_failures
     figures["loop_detector_failures"] = run.loop_detector_failures
     return figures
+
+
+#: Counters a detector may expose, reported with its figures (e.g. SymbioLCD2's keyframes with too
+#: few objects for the paper's graph).
+DETECTOR_COUNTERS = ("object_poor_keyframes",)
+
+
+def detector_counters(detector: LoopDetector) -> dict[str, int]:
+    return {name: int(getattr(detector, name)) for name in DETECTOR_COUNTERS if hasattr(detector, name)}
 
 
 def write_queries_csv(path: Path, runs: dict[str, LcdRun]) -> None:
@@ -314,6 +316,7 @@ def run_lcd_command(args: argparse.Namespace) -> int:
             "object_detector": object_name,
             "tolerance": args.tolerance,
             **figures_of(run, detector.threshold),
+            **detector_counters(detector),
         }
         for name, detector, run in zip(names, detectors, runs, strict=True)
     }

@@ -132,6 +132,7 @@ def test_eval_lcd_cli(small_loop_scene: Path, tmp_path: Path, capsys: pytest.Cap
     assert code == 0
     figures = json.loads(out.read_text())
     assert figures["object_detector"] == "oracle" and figures["loop_detector_failures"] == 0
+    assert 0 <= figures["object_poor_keyframes"] < figures["keyframes"]
     for key in ("precision", "recall", "recall_at_100p", "auc_pr", "ms_per_keyframe_p50", "ms_objects_p95"):
         assert key in figures
     assert figures["queries_with_loop"] > 5 and figures["recall_at_100p"] > 0.5

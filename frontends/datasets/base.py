@@ -8,7 +8,7 @@ index file and line that listed it); ``strict=True`` turns that into a ``Dataset
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -192,6 +192,15 @@ class Dataset:
             "gt_loop_queries": 0 if pairs is None else len(np.unique(pairs[:, 0])),
             "gt_loop_pairs_source": source,
         }
+
+
+def every_period(frames: Iterable[Frame], period: float) -> Iterator[Frame]:
+    """The frames at least ``period`` seconds after the previously kept one (the first is kept)."""
+    last = -np.inf
+    for frame in frames:
+        if frame.timestamp - last >= period - 1e-9:
+            last = frame.timestamp
+            yield frame
 
 
 def first_image_size(entries: Sequence[ImageEntry], tries: int = 5) -> tuple[int, int]:
