@@ -136,3 +136,12 @@ class Keyframe:
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
     objects: tuple[DetectedObject, ...] = ()
     image: np.ndarray | None = None
+    #: (N, 3) map point of each keypoint in this keyframe's camera frame, NaN rows where a keypoint
+    #: has none (what Sim(3) geometric verification aligns). None when the frontend has no map.
+    points3d: np.ndarray | None = None
+    #: Map segment: a new segment starts after a tracking loss that relocalisation could not
+    #: recover; poses of different segments share no frame until a loop reconnects them.
+    segment: int = 0
+    #: Covariance of the motion from the previous keyframe of the segment (7x7 Sim(3) tangent order
+    #: of ``slam_backend.lie``: rotation, translation, log-scale), None when unknown.
+    odometry_covariance: np.ndarray | None = None

@@ -1,0 +1,62 @@
+"""The swappable frontend: turns a stream of frames into posed keyframes.
+
+A frontend consumes frames in order (``track``) and says for each where the camera is (or that it
+is lost), and which frames became keyframes. Keyframes carry what the loop detector and the
+geometric verifier need: keypoints, ORB descriptors, the 3D map points seen by each keypoint, the
+map segment and the odometry covariance. Poses are camera-to-world 4x4 in the frontend's map
+frame; a monocular map has an arbitrary scale (fixed by its first baseline).
+
+Implementations register by name (entry-point group ``symbio.frontends``); a factory takes the
+camera intrinsics and ``--set key=value`` overrides / a YAML file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from frontends.registry import Registry
+from frontends.types import CameraIntrinsics, Frame, Keyframe
+
+TrackingState = Literal["initialising", "tracking", "relocalised", "lost"]
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What a frontend says about one frame."""
+
+    frame_index: int
+    timestamp: float
+    state: TrackingState
+    #: Camera-to-world pose of the frame in the map of ``segment``; None while initialising or lost.
+    pose: np.ndarray | None
+    segment: int = 0
+    #: The keyframe this frame became, if it did.
+    keyframe: Keyframe | None = None
+
+
+@runtime_checkable
+class Frontend(Protocol):
+    name: str
+
+    def track(self, frame: Frame) -> TrackResult: ...
+
+    def keyframes(self) -> list[Keyframe]:
+        """All keyframes so far, with their latest (e.g. bundle-adjusted) poses."""
+        ...
+
+
+class FrontendFactory(Protocol):
+    def __call__(
+        self, camera: CameraIntrinsics, overrides: Sequence[str] = (), config_path: Any = None
+    ) -> Frontend: ...
+
+
+FRONTENDS: Registry[FrontendFactory] = Registry(
+    "frontend",
+    "symbio.frontends",
+    {"mono-vo": "frontends.mono_vo:create", "replay": "frontends.replay:create"},
+)
