@@ -37,8 +37,14 @@ format: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
 
+# Every speed and accuracy benchmark (about 20 minutes on 2 cores; each prints its ratios and tables).
 bench: $(VENV)/.installed-dev
 	$(PY) eval/bench_synth.py
+	$(PY) -m eval.bench_vbow
+	$(PY) eval/bench_wl.py --keyframes 2000
+	$(PY) -m eval.bench_objects
+	$(PY) -m eval.bench_backend
+	$(PY) -m eval.bench_lcd
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .mypy_cache .ruff_cache
