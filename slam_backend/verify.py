@@ -1,0 +1,294 @@
+"""Geometric verification of loop candidates: does keyframe ``query`` really see ``match``'s place?
+
+A verifier turns a candidate pair of keyframes into a relative Sim(3) loop constraint with a
+covariance, or a rejection with its reason. The ``pycolmap`` verifier (default):
+
+1. ORB matching: Hamming nearest neighbours with Lowe's ratio test and a mutual check (OpenCV).
+2. Two-view geometry with LO-RANSAC (``pycolmap.estimate_calibrated_two_view_geometry``): the
+   matches must fit one epipolar geometry (``min_inliers``, ``min_inlier_ratio``).
+3. The relative Sim(3) from the map points of the epipolar inliers: both keyframes carry the 3D
+   point of each keypoint in their own camera frame (``Keyframe.points3d``), and
+   ``pycolmap.estimate_sim3d_robust`` aligns the query's points onto the match's
+   (``min_points``, ``min_point_inlier_ratio``).
+4. The rotation and translation are refined, with their covariance, by PnP of the query's
+   keypoints against the match's points (``pycolmap.estimate_and_refine_absolute_pose``).
+
+The constraint is ``relative = match_from_query`` as a 4x4 ``[s R, t; 0, 1]`` (a query-camera point
+X maps to s R X + t in the match camera), which is what ``PoseGraphBackend.add_loop(match, query,
+relative, covariance)`` expects (``pose(match)^-1 * pose(query)``). Covariance: 7x7 in
+``slam_backend.lie``'s Sim(3) order; rotation and translation blocks from the PnP covariance, made
+isotropic (their mean variance per axis, which is invariant to the frame change between the PnP
+pose and ``relative``), log-scale variance from the spread of the per-point distance ratios.
+
+Keyframes without map points (e.g. from the ``replay`` frontend) cannot give a scale: such pairs
+are rejected with that reason. Every random choice takes ``seed``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import pycolmap
+
+from frontends.config import load_config
+from frontends.errors import ConfigError
+from frontends.registry import Registry
+from frontends.types import CameraIntrinsics, Keyframe
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The outcome for one candidate; ``relative``/``covariance`` are set when ``verified``."""
+
+    query: int
+    match: int
+    verified: bool
+    #: Why it was rejected ("" when verified), e.g. "12 epipolar inliers < 30".
+    reason: str
+    matches: int = 0
+    inliers: int = 0
+    relative: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+
+    @property
+    def scale(self) -> float:
+        return (
+            float(np.cbrt(np.linalg.det(self.relative[:3, :3])))
+            if self.relative is not None
+            else float("nan")
+        )
+
+
+class Verifier(Protocol):
+    name: str
+
+    def verify(self, query: Keyframe, match: Keyframe) -> Verification: ...
+
+
+class VerifierFactory(Protocol):
+    def __call__(
+        self, camera: CameraIntrinsics, overrides: Sequence[str] = (), config_path: Any = None
+    ) -> Verifier: ...
+
+
+VERIFIERS: Registry[VerifierFactory] = Registry(
+    "verifier", "symbio.verifiers", {"pycolmap": "slam_backend.verify:create"}
+)
+
+
+@dataclass(frozen=True)
+class VerifierConfig:
+    #: Lowe's ratio: best Hamming distance below this times the second best.
+    ratio: float = 0.8
+    #: Matches farther than this many bits are never kept (ORB: 256 bits).
+    max_hamming: int = 80
+    #: Epipolar RANSAC threshold in pixels.
+    max_epipolar_error_px: float = 4.0
+    min_matches: int = 30
+    min_inliers: int = 30
+    min_inlier_ratio: float = 0.25
+    #: Epipolar inliers with a map point in both keyframes needed for the Sim(3).
+    min_points: int = 20
+    #: Sim(3) RANSAC threshold as a fraction of the match's median point depth.
+    max_point_error: float = 0.03
+    min_point_inlier_ratio: float = 0.5
+    #: PnP RANSAC threshold in pixels.
+    max_reprojection_error_px: float = 4.0
+    #: Floors of the constraint's standard deviations: the estimates' own spread ignores systematic
+    #: errors (map-point depth, calibration), and an overconfident loop bends the whole graph.
+    min_rotation_sigma_rad: float = 0.003
+    #: As a fraction of the match's median point depth.
+    min_translation_sigma: float = 0.01
+    min_log_scale_sigma: float = 0.02
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.ratio <= 1:
+            raise ConfigError(f"verifier: ratio must be in (0, 1], got {self.ratio}")
+        if min(self.min_matches, self.min_inliers, self.min_points) < 5:
+            raise ConfigError("verifier: min_matches, min_inliers and min_points must be >= 5")
+        if not 0 <= self.min_inlier_ratio <= 1 or not 0 <= self.min_point_inlier_ratio <= 1:
+            raise ConfigError("verifier: inlier ratios must be in [0, 1]")
+
+
+def match_descriptors(a: np.ndarray, b: np.ndarray, ratio: float, max_hamming: int) -> np.ndarray:
+    """(K, 2) index pairs of mutual nearest neighbours passing the ratio test."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    forward = matcher.knnMatch(a, b, k=2)
+    backward = matcher.match(b, a)
+    best_back = np.full(len(b), -1, dtype=np.int64)
+    for m in backward:
+        best_back[m.queryIdx] = m.trainIdx
+    pairs = [
+        (m.queryIdx, m.trainIdx)
+        for m, n in (p for p in forward if len(p) == 2)
+        if m.distance < ratio * n.distance
+        and m.distance <= max_hamming
+        and best_back[m.trainIdx] == m.queryIdx
+    ]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def colmap_camera(camera: CameraIntrinsics) -> pycolmap.Camera:
+    if camera.is_distorted:
+        d = camera.dist_coeffs
+        return pycolmap.Camera(
+            model="OPENCV",
+            width=camera.width,
+            height=camera.height,
+            params=[camera.fx, camera.fy, camera.cx, camera.cy, d[0], d[1], d[2], d[3]],
+        )
+    return pycolmap.Camera(
+        model="PINHOLE",
+        width=camera.width,
+        height=camera.height,
+        params=[camera.fx, camera.fy, camera.cx, camera.cy],
+    )
+
+
+class PycolmapVerifier:
+    """See the module docstring."""
+
+    name = "pycolmap"
+
+    def __init__(self, camera: CameraIntrinsics, config: VerifierConfig = VerifierConfig()) -> None:
+        self.config = config
+        self.camera = colmap_camera(camera)
+
+    def verify(self, query: Keyframe, match: Keyframe) -> Verification:
+        config = self.config
+        ids = (query.id, match.id)
+        pairs = match_descriptors(query.descriptors, match.descriptors, config.ratio, config.max_hamming)
+        if len(pairs) < config.min_matches:
+            return Verification(
+                *ids, False, f"{len(pairs)} descriptor matches < {config.min_matches}", len(pairs)
+            )
+        inliers = self._epipolar_inliers(query, match, pairs)
+        ratio = len(inliers) / len(pairs)
+        if len(inliers) < config.min_inliers or ratio < config.min_inlier_ratio:
+            return Verification(
+                *ids,
+                False,
+                f"{len(inliers)} epipolar inliers of {len(pairs)} matches "
+                f"(need {config.min_inliers} and ratio {config.min_inlier_ratio})",
+                len(pairs),
+                len(inliers),
+            )
+        if query.points3d is None or match.points3d is None:
+            return Verification(
+                *ids, False, "no map points: the relative scale is unobservable", len(pairs), len(inliers)
+            )
+        both = inliers[
+            np.isfinite(query.points3d[inliers[:, 0]]).all(axis=1)
+            & np.isfinite(match.points3d[inliers[:, 1]]).all(axis=1)
+        ]
+        if len(both) < config.min_points:
+            return Verification(
+                *ids,
+                False,
+                f"{len(both)} inliers with map points < {config.min_points}",
+                len(pairs),
+                len(inliers),
+            )
+        return self._sim3(query, match, both, len(pairs), len(inliers))
+
+    def _epipolar_inliers(self, query: Keyframe, match: Keyframe, pairs: np.ndarray) -> np.ndarray:
+        options = pycolmap.TwoViewGeometryOptions()
+        options.ransac.max_error = self.config.max_epipolar_error_px
+        options.ransac.random_seed = self.config.seed
+        geometry = pycolmap.estimate_calibrated_two_view_geometry(
+            self.camera,
+            query.keypoints.astype(np.float64),
+            self.camera,
+            match.keypoints.astype(np.float64),
+            pairs.astype(np.uint32),
+            options,
+        )
+        return np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+
+    def _sim3(
+        self, query: Keyframe, match: Keyframe, both: np.ndarray, matches: int, inliers: int
+    ) -> Verification:
+        config = self.config
+        ids = (query.id, match.id)
+        assert query.points3d is not None and match.points3d is not None
+        source = query.points3d[both[:, 0]].astype(np.float64)
+        target = match.points3d[both[:, 1]].astype(np.float64)
+        depth = float(np.median(np.linalg.norm(target, axis=1)))
+        options = pycolmap.RANSACOptions()
+        options.max_error = config.max_point_error * depth
+        options.random_seed = config.seed
+        # pycolmap 3.x returns a dict (tgt_from_src, num_inliers, inlier_mask); its stub says Sim3d.
+        estimate: Any = pycolmap.estimate_sim3d_robust(source, target, options)
+        if estimate is None:
+            return Verification(*ids, False, "no Sim(3) fits the map points", matches, inliers)
+        transform = estimate["tgt_from_src"]
+        matrix = np.asarray(transform.matrix(), dtype=np.float64)
+        residual = np.linalg.norm(source @ matrix[:, :3].T + matrix[:, 3] - target, axis=1)
+        good = residual <= options.max_error
+        if good.mean() < config.min_point_inlier_ratio or good.sum() < config.min_points:
+            return Verification(
+                *ids,
+                False,
+                f"{int(good.sum())} of {len(good)} map points fit the Sim(3) "
+                f"(need ratio {config.min_point_inlier_ratio})",
+                matches,
+                inliers,
+            )
+        scale = float(transform.scale)
+        pnp = self._pnp(query, target[good], both[good, 0])
+        if pnp is None:
+            return Verification(
+                *ids, False, "PnP of the query against the match's points failed", matches, inliers
+            )
+        match_from_query, pose_covariance = pnp
+        relative = np.eye(4)
+        relative[:3, :3] = scale * match_from_query[:3, :3]
+        relative[:3, 3] = match_from_query[:3, 3]
+        variances = (
+            max(np.trace(pose_covariance[:3, :3]) / 3, config.min_rotation_sigma_rad**2),
+            max(np.trace(pose_covariance[3:, 3:]) / 3, (config.min_translation_sigma * depth) ** 2),
+            max(_log_scale_variance(source[good], target[good]), config.min_log_scale_sigma**2),
+        )
+        covariance = np.diag(np.repeat(variances, (3, 3, 1)))
+        return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance)
+
+    def _pnp(
+        self, query: Keyframe, match_points: np.ndarray, query_indices: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        options = pycolmap.AbsolutePoseEstimationOptions()
+        options.ransac.max_error = self.config.max_reprojection_error_px
+        options.ransac.random_seed = self.config.seed
+        result = pycolmap.estimate_and_refine_absolute_pose(
+            query.keypoints[query_indices].astype(np.float64),
+            match_points,
+            self.camera,
+            options,
+            return_covariance=True,
+        )
+        if result is None or "covariance" not in result:
+            return None
+        query_from_match = np.eye(4)
+        query_from_match[:3, :] = np.asarray(result["cam_from_world"].matrix(), dtype=np.float64)
+        return np.linalg.inv(query_from_match), np.asarray(result["covariance"], dtype=np.float64)
+
+
+def _log_scale_variance(source: np.ndarray, target: np.ndarray) -> float:
+    """Variance of the mean log ratio of point distances from the centroids (a scale estimate)."""
+    a = np.linalg.norm(source - source.mean(axis=0), axis=1)
+    b = np.linalg.norm(target - target.mean(axis=0), axis=1)
+    keep = (a > 1e-9) & (b > 1e-9)
+    logs = np.log(b[keep] / a[keep])
+    return float(np.var(logs) / max(len(logs), 1))
+
+
+def create(
+    camera: CameraIntrinsics, overrides: Sequence[str] = (), config_path: Any = None
+) -> PycolmapVerifier:
+    return PycolmapVerifier(camera, load_config(VerifierConfig, config_path, overrides))
