@@ -1,10 +1,9 @@
 """Benchmark of the incremental WL kernel (``lcd.wl.WLKernel``) against grakel.
 
 Graphs: ``--frames`` distinct frames of a synthetic loop scene (``frontends.synth.render_frames``),
-ORB (``cv2.ORB.create(1500)`` on the grey image), the scene's ground-truth static objects as
-detections, ``lcd.graph.build_graph`` with the default ``GraphConfig``. Word ids come from the shipped
-default vocabulary (``lcd.vocabulary.load_vocabulary``, level ``--word-level``) when it is available,
-otherwise from the first 10 bits of each descriptor (1024 words); ``words`` in the JSON says which.
+built as the ``symbiolcd2`` detector builds them: ORB with ``OrbConfig()``, the scene's ground-truth
+objects through the detector's object filter, word ids of the shipped vocabulary at
+``--word-level`` and ``build_graph`` with the detector's ``GraphConfig`` (defaults: the detector's).
 The frames are reused cyclically to reach ``--keyframes`` keyframes, so every keyframe after the
 first ``--frames`` has identical earlier copies (the kernel's worst case: they match at every
 iteration).
@@ -20,7 +19,7 @@ Figures (one run, so ratios compare like with like):
   keyframes one fit takes minutes.
 - ``ms_add_query_h<h>``: p50 of the last 100 ``add_and_query`` calls at ``--table-keyframes`` stored.
 
-Usage: ``python eval/bench_wl.py --keyframes 2000 [--iterations 50] --json OUT``.
+Usage: ``python eval/bench_wl.py --keyframes 2000 [--iterations 10] --json OUT``.
 """
 
 from __future__ import annotations
@@ -28,56 +27,37 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
-import lcd.vocabulary
 from frontends.cli_common import add_json_option, print_figures, write_json
-from frontends.errors import InputFileError
 from frontends.synth import SynthConfig, render_frames
 from frontends.types import DetectedObject
-from lcd.graph import GraphConfig, LabelledGraph, build_graph
+from lcd.features import OrbConfig, extract_orb
+from lcd.graph import LabelledGraph, build_graph
+from lcd.objects.filtering import filter_objects
+from lcd.symbiolcd2 import SymbioLCD2Config
+from lcd.vbow import DEFAULT_VOCABULARY
+from lcd.vocabulary import Vocabulary
 from lcd.wl import WLKernel, grakel_kernel_matrix, to_grakel
 
 TABLE_ITERATIONS = (1, 2, 3, 5, 10, 20, 50)
 
 
-def word_source(level: int) -> tuple[str, Callable[[np.ndarray], np.ndarray]]:
-    """(description, descriptors -> word ids): the default vocabulary if shipped, else 10 bits."""
-    # lcd.vocabulary may not ship load_vocabulary (or its default file) yet.
-    load = getattr(lcd.vocabulary, "load_vocabulary", None)
-    try:
-        vocabulary = load(None) if load is not None else None
-    except (OSError, InputFileError):
-        vocabulary = None
-    if vocabulary is None:
-
-        def bits(descriptors: np.ndarray) -> np.ndarray:
-            d = descriptors.astype(np.int64)
-            return (d[:, 0] << 2) | (d[:, 1] >> 6)
-
-        return "first 10 descriptor bits (1024 words)", bits
-    return f"default vocabulary, level {level}", lambda d: vocabulary.words_at_level(d, level)
-
-
-def synthetic_graphs(frames: int, seed: int, word_level: int) -> tuple[list[LabelledGraph], str]:
-    """One keyframe graph per rendered frame of a synthetic loop scene."""
-    words_name, words_of = word_source(word_level)
-    orb = cv2.ORB.create(1500)
+def synthetic_graphs(frames: int, seed: int, word_level: int) -> list[LabelledGraph]:
+    """One keyframe graph per rendered frame, built exactly as ``SymbioLCD2.graph_of`` builds it."""
+    vocabulary = Vocabulary.load(DEFAULT_VOCABULARY)
+    config = SymbioLCD2Config()
     graphs = []
     for _, image, objects in render_frames(SynthConfig(frames=frames, seed=seed)):
-        keypoints, descriptors = orb.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), None)
-        points = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
-        words = words_of(descriptors) if descriptors is not None else np.zeros(0, dtype=np.int64)
-        detections = [
-            DetectedObject(o.label, 1.0, (o.box[0], o.box[1], o.box[2], o.box[3]))
-            for o in objects
-            if not o.movable
-        ]
-        graphs.append(build_graph(points, words, detections, GraphConfig()))
-    return graphs, words_name
+        keypoints, descriptors = extract_orb(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), OrbConfig())
+        detections = [DetectedObject(o.label, 1.0, o.box) for o in objects]
+        kept = filter_objects(detections, (image.shape[1], image.shape[0]), config.objects)
+        words = vocabulary.words_at_level(descriptors, word_level)
+        graphs.append(build_graph(keypoints, words, kept, config.graph))
+    return graphs
 
 
 def timed_run(graphs: Sequence[LabelledGraph], iterations: int, count: int, last: int = 100) -> np.ndarray:
@@ -123,13 +103,13 @@ def grakel_times(graphs: Sequence[LabelledGraph], iterations: int) -> tuple[floa
 
 def bench(args: argparse.Namespace) -> dict[str, object]:
     start = time.perf_counter()
-    graphs, words_name = synthetic_graphs(args.frames, args.seed, args.word_level)
+    graphs = synthetic_graphs(args.frames, args.seed, args.word_level)
     sizes = np.array([g.num_nodes for g in graphs])
     figures: dict[str, object] = {
         "keyframes": args.keyframes,
         "iterations": args.iterations,
         "distinct_frames": len(graphs),
-        "words": words_name,
+        "word_level": args.word_level,
         "nodes_p50": float(np.median(sizes)),
         "nodes_max": int(sizes.max()),
         "seconds_graphs": time.perf_counter() - start,
@@ -176,12 +156,19 @@ def markdown(figures: dict[str, object]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keyframes", type=int, default=2000)
-    parser.add_argument("--iterations", type=int, default=50, help="WL iterations h (paper: 50)")
+    parser.add_argument(
+        "--iterations", type=int, default=SymbioLCD2Config().iterations, help="WL iterations h (paper: 50)"
+    )
     parser.add_argument("--frames", type=int, default=300, help="distinct rendered frames, reused cyclically")
     parser.add_argument("--check", type=int, default=100, help="keyframes compared with grakel")
     parser.add_argument("--grakel-keyframes", type=int, default=100, help="store size of the grakel timing")
     parser.add_argument("--table-keyframes", type=int, default=2000, help="store size of the h table")
-    parser.add_argument("--word-level", type=int, default=2, help="vocabulary level of the word ids")
+    parser.add_argument(
+        "--word-level",
+        type=int,
+        default=SymbioLCD2Config().word_level,
+        help="vocabulary level of the word ids",
+    )
     parser.add_argument("--seed", type=int, default=0)
     add_json_option(parser)
     args = parser.parse_args(argv)

@@ -544,8 +544,15 @@ class WLKernel:
             first[1:] = rows[1:] != rows[:-1]
             unique_rows = rows[first]
             summed = np.add.reduceat(weights.astype(np.float64), np.flatnonzero(first))
-            contribution = block.matrix[unique_rows].T @ summed
-            raw[: len(contribution)] += contribution
+            # The rows' postings gathered straight from the CSR arrays: scipy's fancy row
+            # indexing builds a new matrix per call and cost as much as everything else here.
+            indptr = block.matrix.indptr
+            segment, postings = _ranges(indptr[unique_rows], indptr[unique_rows + 1] - indptr[unique_rows])
+            raw += np.bincount(
+                block.matrix.indices[postings],
+                weights=summed[segment] * block.matrix.data[postings],
+                minlength=n,
+            )
         norms = np.sqrt(r.self_similarity * self._self_similarity.view())
         out = np.zeros(n, dtype=np.float64)
         np.divide(raw, norms, out=out, where=norms > 0)
