@@ -22,6 +22,7 @@ SUBCOMMAND_MODULES = (
     "lcd.vocab_cli",
     "lcd.symbiolcd_train",
     "eval.lcd_eval",
+    "eval.run",
 )
 
 
@@ -52,6 +53,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SymbioError as exc:
         print(f"symbio: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # commands write what they processed before re-raising
+        print("symbio: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
