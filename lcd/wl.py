@@ -42,7 +42,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from lcd.graph import LabelledGraph
 
@@ -171,35 +170,70 @@ def _refine(graph: LabelledGraph, iterations: int) -> _Refinement:
     return _Refinement(labels, indptr, indices, partitions, representatives, self_similarity)
 
 
-@dataclass
-class _Block:
-    """Postings of a run of consecutive graphs: one CSR row per (chain, run length) column key."""
-
-    keys: np.ndarray
-    matrix: sp.csr_matrix
-    graphs: int
+def _capacity(sizes: np.ndarray) -> np.ndarray:
+    """The smallest power of two >= each size (0 for 0)."""
+    exponent = np.frexp(np.maximum(sizes - 1, 0).astype(np.float64))[1]
+    return np.where(sizes > 0, np.left_shift(1, exponent.astype(np.int64)), 0)
 
 
-def _make_block(keys: np.ndarray, graph_ids: np.ndarray, counts: np.ndarray, graphs: int) -> _Block:
-    order = np.argsort(keys, kind="stable")
-    keys, graph_ids, counts = keys[order], graph_ids[order], counts[order]
-    unique, first = np.unique(keys, return_index=True)
-    indptr = np.append(first, len(keys)).astype(np.int64)
-    width = int(graph_ids.max()) + 1 if len(graph_ids) else 0
-    matrix = sp.csr_matrix((counts.astype(np.float64), graph_ids, indptr), shape=(len(unique), width))
-    return _Block(unique, matrix, graphs)
+class _Postings:
+    """Every stored graph's runs, listed per chain as (graph, run length, count).
 
+    A chain's list lies contiguously in one arena with a power-of-two capacity (derived from its
+    size); a list that outgrows it moves to the arena's end. Appends are amortised O(1), scoring
+    reads a chain's list at a known offset (no search), and the abandoned space is below the live
+    capacity (a geometric series per chain)."""
 
-def _block_postings(block: _Block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    keys = np.repeat(block.keys, np.diff(block.matrix.indptr))
-    return keys, block.matrix.indices.astype(np.int64), block.matrix.data
+    def __init__(self) -> None:
+        self.start = _Buffer(np.int64)
+        self.size = _Buffer(np.int64)
+        self.graph = _Buffer(np.int64)
+        self.run = _Buffer(np.int64)
+        self.count = _Buffer(np.int64)
+
+    def add_chains(self, count: int) -> None:
+        self.start.extend(np.zeros(count, dtype=np.int64))
+        self.size.extend(np.zeros(count, dtype=np.int64))
+
+    def append(self, chains: np.ndarray, graphs: np.ndarray, runs: np.ndarray, counts: np.ndarray) -> None:
+        """Append postings; ``chains`` must be non-decreasing."""
+        if len(chains) == 0:
+            return
+        unique, first, added = np.unique(chains, return_index=True, return_counts=True)
+        start, size = self.start.view(), self.size.view()
+        begin, used = start[unique], size[unique]
+        grow = used + added > _capacity(used)
+        if grow.any():
+            capacity = _capacity(used[grow] + added[grow])
+            moved = len(self.graph) + np.cumsum(capacity) - capacity
+            _, source = _ranges(begin[grow], used[grow])
+            _, target = _ranges(moved, used[grow])
+            for arena in (self.graph, self.run, self.count):
+                arena.extend(np.zeros(int(capacity.sum()), dtype=np.int64))
+                data = arena.view()
+                data[target] = data[source]
+            begin[grow] = moved
+            start[unique] = begin
+        rank = np.arange(len(chains)) - np.repeat(first, added)
+        position = np.repeat(begin + used, added) + rank
+        self.graph.view()[position] = graphs
+        self.run.view()[position] = runs
+        self.count.view()[position] = counts
+        size[unique] = used + added
+
+    def listed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(chain, graph, run length, count) of every posting, by chain."""
+        size = self.size.view()
+        chain, position = _ranges(self.start.view(), size)
+        return chain, self.graph.view()[position], self.run.view()[position], self.count.view()[position]
 
 
 @dataclass(frozen=True)
 class _Relabelled:
-    """A graph's runs (column key, count), and for an added graph the trajectory data to store."""
+    """A graph's runs (by chain), and for an added graph the trajectory data to store."""
 
-    keys: np.ndarray
+    chains: np.ndarray
+    runs: np.ndarray
     counts: np.ndarray
     self_similarity: float
     trajectory_keys: np.ndarray
@@ -234,7 +268,7 @@ class WLKernel:
         self._adjacency = _Buffer(np.int64)
         self._ready = _Buffer(np.int64)
         self._self_similarity = _Buffer(np.float64)
-        self._blocks: list[_Block] = []
+        self._postings = _Postings()
 
     def __len__(self) -> int:
         return len(self._self_similarity)
@@ -301,12 +335,12 @@ class WLKernel:
                 steps = np.arange(1, h - t + 1, dtype=np.int64)
                 columns_labels[:, t + 1 :] = np.where(alive[:, None], labels[:, None] + steps, -1)
                 break
-        keys, counts = self._runs(columns_labels, columns_starts, np.bincount(final, minlength=k))
+        runs = self._runs(columns_labels, columns_starts, np.bincount(final, minlength=k))
         if not add:
             empty = np.zeros(0, dtype=np.int64)
-            return _Relabelled(keys, counts, ref.self_similarity, empty, empty, empty, empty, empty)
+            return _Relabelled(*runs, ref.self_similarity, empty, empty, empty, empty, empty)
         return self._trajectory(
-            ref, columns_labels, columns_starts, final_seg, final_neighbour_units, keys, counts, offset
+            ref, columns_labels, columns_starts, final_seg, final_neighbour_units, runs, offset
         )
 
     def _create(self, units: np.ndarray, t: int, s: int, offset: int) -> np.ndarray:
@@ -317,6 +351,7 @@ class WLKernel:
         self._chain_length.extend(
             np.full(len(units), self.iterations - t + 1 if final else 1, dtype=np.int64)
         )
+        self._postings.add_chains(len(units))
         self._chain_anchor.extend(units + offset if final else np.full(len(units), -1, dtype=np.int64))
         return np.arange(first, first + len(units), dtype=np.int64) * self._width
 
@@ -457,16 +492,17 @@ class WLKernel:
 
     def _runs(
         self, labels: np.ndarray, starts: np.ndarray, sizes: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Column keys chain * (h + 2) + run length, with counts, of the class label rows."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(chain, run length, count) of the class label rows, by chain."""
         alive = labels >= 0
         flat_starts = starts[alive]
         run = np.cumsum(flat_starts) - 1
         lengths = np.bincount(run) if len(run) else np.zeros(0, dtype=np.int64)
         chains = labels[alive][flat_starts] // self._width
         counts = np.repeat(sizes, alive.sum(axis=1))[flat_starts]
-        keys, inverse = np.unique(chains * (self._width + 1) + lengths, return_inverse=True)
-        return keys, np.bincount(inverse.reshape(-1), weights=counts).astype(np.int64)
+        radix = self._width + 1
+        keys, inverse = np.unique(chains * radix + lengths, return_inverse=True)
+        return keys // radix, keys % radix, np.bincount(inverse.reshape(-1), weights=counts).astype(np.int64)
 
     def _trajectory(
         self,
@@ -475,8 +511,7 @@ class WLKernel:
         starts: np.ndarray,
         seg: np.ndarray,
         neighbour_units: np.ndarray,
-        keys: np.ndarray,
-        counts: np.ndarray,
+        runs: tuple[np.ndarray, np.ndarray, np.ndarray],
         offset: int,
     ) -> _Relabelled:
         s, width = ref.stable, self._width
@@ -494,8 +529,7 @@ class WLKernel:
         if len(seg):
             np.maximum.at(ready, seg, settle[neighbour_units])
         return _Relabelled(
-            keys,
-            counts,
+            *runs,
             ref.self_similarity,
             trajectory_keys,
             trajectory_bases,
@@ -514,45 +548,18 @@ class WLKernel:
         self._adjacency.extend(r.adjacency)
         self._ready.extend(r.ready)
         self._self_similarity.extend(np.array([r.self_similarity]))
-        self._blocks.append(_make_block(r.keys, np.full(len(r.keys), row, dtype=np.int64), r.counts, 1))
-        while len(self._blocks) >= 2 and self._blocks[-2].graphs <= self._blocks[-1].graphs:
-            last, before = self._blocks.pop(), self._blocks.pop()
-            keys, graph_ids, counts = (
-                np.concatenate(pair)
-                for pair in zip(_block_postings(before), _block_postings(last), strict=True)
-            )
-            self._blocks.append(_make_block(keys, graph_ids, counts, before.graphs + last.graphs))
+        self._postings.append(r.chains, np.full(len(r.chains), row, dtype=np.int64), r.runs, r.counts)
 
     def _scores(self, r: _Relabelled) -> np.ndarray:
         n = len(self)
-        raw = np.zeros(n, dtype=np.float64)
-        radix = self._width + 1
-        chains, run_lengths = r.keys // radix, r.keys % radix
-        low = chains * radix
-        for block in self._blocks:
-            begin = np.searchsorted(block.keys, low)
-            matches = np.searchsorted(block.keys, low + radix) - begin
-            hit = np.flatnonzero(matches)
-            if hit.size == 0:
-                continue
-            owner, rows = _ranges(begin[hit], matches[hit])
-            owner = hit[owner]
-            stored_lengths = block.keys[rows] - low[owner]
-            weights = r.counts[owner] * np.minimum(run_lengths[owner], stored_lengths)
-            # rows are sorted (keys and blocks are); a chain met by several runs repeats its rows.
-            first = np.ones(len(rows), dtype=bool)
-            first[1:] = rows[1:] != rows[:-1]
-            unique_rows = rows[first]
-            summed = np.add.reduceat(weights.astype(np.float64), np.flatnonzero(first))
-            # The rows' postings gathered straight from the CSR arrays: scipy's fancy row
-            # indexing builds a new matrix per call and cost as much as everything else here.
-            indptr = block.matrix.indptr
-            segment, postings = _ranges(indptr[unique_rows], indptr[unique_rows + 1] - indptr[unique_rows])
-            raw += np.bincount(
-                block.matrix.indices[postings],
-                weights=summed[segment] * block.matrix.data[postings],
-                minlength=n,
-            )
+        postings = self._postings
+        # Chains created by this graph have no postings yet.
+        stored = r.chains < len(postings.size)
+        chains, runs, counts = r.chains[stored], r.runs[stored], r.counts[stored]
+        owner, position = _ranges(postings.start.view()[chains], postings.size.view()[chains])
+        shared = np.minimum(runs[owner], postings.run.view()[position])
+        weights = (counts[owner] * postings.count.view()[position] * shared).astype(np.float64)
+        raw = np.bincount(postings.graph.view()[position], weights=weights, minlength=n)
         norms = np.sqrt(r.self_similarity * self._self_similarity.view())
         out = np.zeros(n, dtype=np.float64)
         np.divide(raw, norms, out=out, where=norms > 0)
@@ -564,12 +571,7 @@ class WLKernel:
         """All state as flat arrays (``np.savez``-able); ``from_state`` restores it."""
         signatures = list(self._signatures.items())
         key_data = b"".join(key for key, _ in signatures)
-        postings = [_block_postings(b) for b in self._blocks]
-        keys, graph_ids, counts = (
-            (np.concatenate(p) for p in zip(*postings, strict=True))
-            if postings
-            else (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
-        )
+        chains, graphs, runs, counts = self._postings.listed()
         return {
             "iterations": np.array([self.iterations], dtype=np.int64),
             "initial_keys": np.array(list(self._initial.keys()), dtype=np.int64),
@@ -585,9 +587,10 @@ class WLKernel:
             "adjacency": self._adjacency.view().copy(),
             "ready": self._ready.view().copy(),
             "self_similarity": self._self_similarity.view().copy(),
-            "posting_keys": keys,
-            "posting_graphs": graph_ids,
-            "posting_counts": np.asarray(counts, dtype=np.float64),
+            "posting_chains": chains,
+            "posting_graphs": graphs,
+            "posting_runs": runs,
+            "posting_counts": counts,
         }
 
     @classmethod
@@ -611,15 +614,10 @@ class WLKernel:
         kernel._adjacency = _Buffer(np.int64, state["adjacency"])
         kernel._ready = _Buffer(np.int64, state["ready"])
         kernel._self_similarity = _Buffer(np.float64, state["self_similarity"])
-        if len(kernel):
-            kernel._blocks = [
-                _make_block(
-                    state["posting_keys"].astype(np.int64),
-                    state["posting_graphs"].astype(np.int64),
-                    state["posting_counts"],
-                    len(kernel),
-                )
-            ]
+        kernel._postings.add_chains(len(kernel._chain_length))
+        kernel._postings.append(
+            *(state[f"posting_{name}"].astype(np.int64) for name in ("chains", "graphs", "runs", "counts"))
+        )
         return kernel
 
 
