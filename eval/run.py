@@ -68,6 +68,8 @@ class OdometryRun:
     """What streaming frames through a frontend produced so far."""
 
     results: list[TrackResult] = field(default_factory=list)
+    #: Position in ``results`` of each frame index (so backfilled results replace earlier ones).
+    positions: dict[int, int] = field(default_factory=dict)
     frontend_failures: int = 0
     frontend_seconds: float = 0.0
     interrupted: bool = False
@@ -75,6 +77,14 @@ class OdometryRun:
     @property
     def tracked(self) -> list[TrackResult]:
         return [r for r in self.results if r.pose is not None]
+
+    def add(self, result: TrackResult) -> None:
+        self.positions[result.frame_index] = len(self.results)
+        self.results.append(result)
+        for late in result.backfilled:
+            position = self.positions.get(late.frame_index)
+            if position is not None:
+                self.results[position] = late
 
 
 def track_frame(frontend: Frontend, frame: Frame, run: OdometryRun) -> TrackResult:
@@ -98,7 +108,7 @@ def track_frame(frontend: Frontend, frame: Frame, run: OdometryRun) -> TrackResu
 
 def stream_frames(frames: Iterable[Frame], frontend: Frontend, run: OdometryRun) -> None:
     for frame in frames:
-        run.results.append(track_frame(frontend, frame, run))
+        run.add(track_frame(frontend, frame, run))
 
 
 def run_odometry(

@@ -36,6 +36,9 @@ class TrackResult:
     segment: int = 0
     #: The keyframe this frame became, if it did.
     keyframe: Keyframe | None = None
+    #: Results for earlier frames that this call posed after the fact (e.g. the frames seen while
+    #: a monocular map initialised); each replaces the result given for its frame before.
+    backfilled: tuple[TrackResult, ...] = ()
 
 
 @runtime_checkable

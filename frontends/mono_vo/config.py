@@ -1,0 +1,155 @@
+"""Configuration of the monocular VO frontend: one frozen dataclass per stage, all with defaults.
+
+Pixel thresholds are for the undistorted image at pyramid level 0; a keypoint detected at pyramid
+level ``o`` gets ``scale_factor**o`` times the tolerance (its position is that much coarser). Counts
+that depend on how many features an image has (minimum matches, minimum points) are given for the
+reference 640x480 image and scaled with the image's feature budget.
+
+Every random choice (OpenCV USAC RANSAC in initialisation, PnP and relocalisation) draws its state
+from ``MonoVoConfig.seed`` mixed with the frame index, never from OpenCV's global RNG.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+#: Image area the feature budget and the count thresholds are given for.
+REFERENCE_AREA = 640 * 480
+
+
+@dataclass(frozen=True)
+class OrbSettings:
+    #: Features per 640x480 image, scaled by image area (KITTI's 1226x370 gets ~1.48x), but never
+    #: fewer than ``min_nfeatures``: small images need a denser set to initialise and track.
+    nfeatures: int = 1500
+    min_nfeatures: int = 1000
+    scale_factor: float = 1.2
+    levels: int = 8
+    fast_threshold: int = 20
+    #: Corners detected per kept feature before spreading over the grid.
+    overdetect: float = 1.5
+    #: Cells across and down the grid the features are spread over (round-robin by response).
+    grid_cols: int = 16
+    grid_rows: int = 12
+
+
+@dataclass(frozen=True)
+class InitSettings:
+    """Two-view initialisation (ORB-SLAM's model selection and acceptance rules)."""
+
+    #: Matches between the reference and the current frame needed to attempt (else new reference).
+    min_matches: int = 100
+    #: Lowe ratio and the largest image displacement (fraction of the diagonal) of an init match.
+    ratio: float = 0.8
+    max_flow_fraction: float = 0.25
+    #: RANSAC thresholds (px) of the essential matrix (Sampson) and the homography (transfer); in
+    #: the ratio of ORB-SLAM's chi2 cut-offs (5.99 vs 3.84), so that inlier counts are comparable.
+    essential_threshold: float = 1.0
+    homography_threshold: float = 1.25
+    #: Homography is the model when its share of the inliers H / (H + E) exceeds this (ORB-SLAM 0.45).
+    homography_share: float = 0.45
+    #: Triangulated points that must pass cheirality, reprojection and parallax checks.
+    min_points: int = 80
+    #: Median parallax angle (deg) of the good points (those above a quarter of it). ORB-SLAM's rule
+    #: (the 50th largest >= 1 deg) accepted near-rotations with a wrong translation on small images.
+    min_parallax_deg: float = 1.0
+    #: The best motion hypothesis must have this many times the good points of the runner-up.
+    ambiguity_ratio: float = 1.4
+    #: Reprojection error (px) of a triangulated point (sqrt of chi2(2 dof, 95 %) = 2.45).
+    max_reprojection_px: float = 2.45
+    #: Replace the reference frame after this many frames without an initialisation.
+    max_reference_age: int = 30
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    #: Search radius (px) around the constant-velocity prediction, and after the PnP pose.
+    search_radius: float = 15.0
+    refine_radius: float = 5.0
+    #: Hamming distance of an accepted projection match, and Lowe's ratio between the best two.
+    max_hamming: int = 80
+    ratio: float = 0.9
+    #: PnP RANSAC reprojection threshold (px) and the inlier threshold of the refinement.
+    pnp_threshold: float = 3.0
+    inlier_threshold: float = 2.45
+    #: Inliers needed to call a frame tracked (640x480 reference, scaled with the feature budget).
+    min_inliers: int = 40
+    #: Keyframes whose map points form the local map projected into each frame.
+    local_keyframes: int = 10
+
+
+@dataclass(frozen=True)
+class KeyframeSettings:
+    #: A frame becomes a keyframe when it tracks fewer than ``tracked_ratio`` of the last keyframe's
+    #: established points (seen by >= 3 keyframes; ORB-SLAM's rule) or ``min_tracked_share`` of all
+    #: its points ...
+    tracked_ratio: float = 0.9
+    min_tracked_share: float = 0.5
+    #: ... or this much time passed since the last keyframe (s), and never sooner than min_interval.
+    max_interval: float = 0.5
+    min_interval: float = 0.0
+    #: Earlier keyframes the new keyframe triangulates fresh points with.
+    triangulation_neighbours: int = 2
+    #: Search radius (fraction of the image diagonal) around the median-depth prediction of a match.
+    search_fraction: float = 0.05
+    #: Lowe ratio and Hamming limit of the keyframe-to-keyframe matches for triangulation.
+    match_ratio: float = 0.8
+    match_max_hamming: int = 60
+    #: Epipolar distance (px) of a triangulation match and the minimum parallax (deg) of its point.
+    epipolar_threshold: float = 2.0
+    min_parallax_deg: float = 1.0
+    #: Odometry covariance between consecutive keyframes (1-sigma), for a keyframe that tracked
+    #: ``covariance_reference_points``; sigmas grow as 1/sqrt(points) below that. The translation
+    #: sigma is relative to the distance between the keyframes (the map has no metric unit).
+    rotation_sigma_deg: float = 0.1
+    translation_sigma_ratio: float = 0.02
+    log_scale_sigma: float = 0.005
+    covariance_reference_points: int = 200
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentSettings:
+    enabled: bool = True
+    #: Keyframes optimised after each new keyframe (older ones that see the same points stay fixed).
+    window: int = 6
+    #: Fixed keyframes (outside the window) that anchor the window, most recent first.
+    max_fixed: int = 4
+    iterations: int = 6
+    #: Huber threshold in pixel sigmas; also the chi2-based outlier cut after the optimisation.
+    huber_k: float = 2.45
+
+
+@dataclass(frozen=True)
+class RelocalisationSettings:
+    #: Recent keyframes tried as anchors for a lost frame.
+    max_keyframes: int = 12
+    ratio: float = 0.8
+    #: PnP RANSAC inliers against one keyframe, and inliers after the local-map check (640x480 ref.).
+    min_pnp_inliers: int = 20
+    min_inliers: int = 50
+    #: Frames with features that may fail to relocalise before a new map segment starts.
+    patience: int = 10
+
+
+@dataclass(frozen=True)
+class IntrinsicsCheckSettings:
+    #: Warn when the essential matrix keeps less than this share of the fundamental matrix's inliers ...
+    min_essential_share: float = 0.85
+    #: ... or the bundle-adjusted median reprojection error of the first keyframes exceeds this (px).
+    max_median_reprojection_px: float = 1.5
+    #: Keyframes after which the reprojection check is made (once per segment).
+    check_after_keyframes: int = 5
+
+
+@dataclass(frozen=True)
+class MonoVoConfig:
+    seed: int = 0
+    #: Frames with fewer features than this (640x480 reference) are "lost" without further work.
+    min_features: int = 100
+    orb: OrbSettings = field(default_factory=OrbSettings)
+    init: InitSettings = field(default_factory=InitSettings)
+    tracking: TrackingSettings = field(default_factory=TrackingSettings)
+    keyframes: KeyframeSettings = field(default_factory=KeyframeSettings)
+    ba: BundleAdjustmentSettings = field(default_factory=BundleAdjustmentSettings)
+    relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
+    intrinsics_check: IntrinsicsCheckSettings = field(default_factory=IntrinsicsCheckSettings)

@@ -1,0 +1,177 @@
+"""ORB features spread over the image, and the descriptor matching the tracker needs.
+
+Extraction: OpenCV's ORB pyramid (8 levels, factor 1.2) detects ``overdetect`` x the budget, then the
+features are picked round-robin over a grid of cells by response rank. ORB-SLAM spreads its
+features with a per-level quadtree for the same reason: tracking and PnP need corners everywhere,
+not only in the most textured patch. Descriptors are computed once, for all detected corners
+(cheaper than a second pyramid pass), and subset afterwards.
+
+Matching: ``match_in_radius`` pairs projected map points with keypoints within a pixel radius (a
+k-d tree gives the candidate pairs in C), takes the Hamming distance of every candidate pair with
+``np.bitwise_count`` on 64-bit words, and keeps the best pair per point when it passes the distance
+limit and Lowe's ratio test, one point per keypoint. No Python loop runs per point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frontends.mono_vo.config import REFERENCE_AREA, OrbSettings
+from frontends.types import CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class Features:
+    """ORB features of one image."""
+
+    #: (N, 2) float32 pixel positions as detected (distorted image).
+    keypoints: np.ndarray
+    #: (N, 2) float64 positions in the undistorted image (what the geometry uses).
+    points: np.ndarray
+    #: (N, 32) uint8 descriptors.
+    descriptors: np.ndarray
+    #: (N,) int pyramid level.
+    octaves: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    def subset(self, index: np.ndarray) -> Features:
+        return Features(
+            self.keypoints[index], self.points[index], self.descriptors[index], self.octaves[index]
+        )
+
+
+def empty_features() -> Features:
+    return Features(
+        np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+    )
+
+
+class OrbExtractor:
+    """ORB with grid spreading and undistortion of the keypoints, for one camera."""
+
+    def __init__(self, settings: OrbSettings, camera: CameraIntrinsics) -> None:
+        self.settings = settings
+        self.camera = camera
+        scaled = round(settings.nfeatures * camera.width * camera.height / REFERENCE_AREA)
+        self.budget = max(1, min(settings.nfeatures, settings.min_nfeatures), scaled)
+        self.orb = cv2.ORB.create(
+            nfeatures=max(self.budget, round(self.budget * settings.overdetect)),
+            scaleFactor=settings.scale_factor,
+            nlevels=settings.levels,
+            fastThreshold=settings.fast_threshold,
+        )
+
+    def extract(self, gray: np.ndarray) -> Features:
+        keypoints, descriptors = self.orb.detectAndCompute(gray, None)
+        if descriptors is None or not keypoints:
+            return empty_features()
+        xy = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
+        response = np.array([k.response for k in keypoints], dtype=np.float64)
+        octaves = np.array([k.octave for k in keypoints], dtype=np.int64)
+        keep = spread_over_grid(
+            xy, response, self.camera.width, self.camera.height, self.settings.grid_cols,
+            self.settings.grid_rows, self.budget,
+        )  # fmt: skip
+        xy = xy[keep]
+        return Features(xy, self.undistort(xy), np.ascontiguousarray(descriptors[keep]), octaves[keep])
+
+    def undistort(self, xy: np.ndarray) -> np.ndarray:
+        if not self.camera.is_distorted or len(xy) == 0:
+            return xy.astype(np.float64)
+        K = self.camera.K
+        points = cv2.undistortPoints(xy.reshape(-1, 1, 2).astype(np.float64), K, self.camera.dist_coeffs, P=K)
+        return points.reshape(-1, 2)
+
+
+def spread_over_grid(
+    xy: np.ndarray, response: np.ndarray, width: int, height: int, cols: int, rows: int, budget: int
+) -> np.ndarray:
+    """Indices of ``budget`` keypoints taken round-robin over grid cells, strongest first in each cell."""
+    if len(xy) <= budget or cols < 1 or rows < 1:
+        return np.arange(len(xy))
+    col = np.clip((xy[:, 0] * cols / width).astype(np.int64), 0, cols - 1)
+    row = np.clip((xy[:, 1] * rows / height).astype(np.int64), 0, rows - 1)
+    cell = row * cols + col
+    order = np.lexsort((-response, cell))
+    sorted_cell = cell[order]
+    rank = np.arange(len(order)) - np.searchsorted(sorted_cell, sorted_cell, side="left")
+    # Round r takes the r-th strongest corner of every cell; within a round the strongest go first.
+    picked = order[np.lexsort((-response[order], rank))[:budget]]
+    return np.sort(picked)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (K, 32) uint8 descriptor arrays."""
+    words_a = np.ascontiguousarray(a).view(np.uint64)
+    words_b = np.ascontiguousarray(b).view(np.uint64)
+    return np.bitwise_count(words_a ^ words_b).sum(axis=1, dtype=np.int64)
+
+
+def match_in_radius(
+    projected: np.ndarray,
+    point_descriptors: np.ndarray,
+    keypoint_tree: cKDTree,
+    keypoint_descriptors: np.ndarray,
+    radius: float,
+    max_hamming: int,
+    ratio: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Match projected points to keypoints within ``radius`` px: (point index, keypoint index) arrays."""
+    none = np.zeros(0, np.int64)
+    if len(projected) == 0 or keypoint_tree.n == 0:
+        return none, none
+    pairs = cKDTree(projected).sparse_distance_matrix(keypoint_tree, radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return none, none
+    point = pairs["i"].astype(np.int64)
+    keypoint = pairs["j"].astype(np.int64)
+    distance = hamming(point_descriptors[point], keypoint_descriptors[keypoint])
+    best, second = best_two_per_group(point, distance)
+    accept = (distance[best] <= max_hamming) & (distance[best] < ratio * second)
+    return unique_targets(point[best][accept], keypoint[best][accept], distance[best][accept])
+
+
+def best_two_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per group: the index of its smallest distance and the second smallest distance (inf if none)."""
+    if len(group) == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    order = np.lexsort((distance, group))
+    sorted_group = group[order]
+    first = np.flatnonzero(np.r_[True, sorted_group[1:] != sorted_group[:-1]])
+    has_second = np.r_[first[1:], len(order)] - first > 1
+    second = np.full(len(first), np.inf)
+    second[has_second] = distance[order[first[has_second] + 1]]
+    return order[first], second
+
+
+def unique_targets(
+    source: np.ndarray, target: np.ndarray, distance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep one match per target: the one with the smallest distance."""
+    order = np.lexsort((distance, target))
+    sorted_target = target[order]
+    first = order[np.r_[True, sorted_target[1:] != sorted_target[:-1]]] if len(order) else order
+    return source[first], target[first]
+
+
+def match_descriptors(
+    query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force Hamming matches with Lowe's ratio test, one query per train descriptor."""
+    none = np.zeros(0, np.int64)
+    if len(query) < 2 or len(train) < 2:
+        return none, none
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
+    rows = np.array(
+        [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in pairs if len(m) == 2],
+        dtype=np.float64,
+    ).reshape(-1, 4)
+    accept = (rows[:, 2] <= max_hamming) & (rows[:, 2] < ratio * rows[:, 3])
+    rows = rows[accept]
+    return unique_targets(rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64), rows[:, 2])

@@ -1,0 +1,358 @@
+"""The monocular VO frontend: a state machine over initialisation, tracking and relocalisation.
+
+Per frame: ORB features; then, by state,
+
+* initialising: two-view initialisation against a reference frame (``initializer``). Success
+  makes the reference and the current frame keyframes 0 and 1 of the segment, with the
+  triangulated points as the first map points and a two-view bundle adjustment.
+* tracking: pose from the local map (``tracker``). A frame becomes a keyframe when it tracks less
+  than ``tracked_ratio`` of the last keyframe's points or ``max_interval`` has passed; the keyframe
+  adds its observations, triangulates new points with its neighbours, runs the local bundle
+  adjustment (``local_ba``) and culls weak points.
+* lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
+  features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
+  poses live in a new map frame: they are never spliced into the old one.
+
+A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
+blackout ends in relocalisation if the camera comes back to a known view.
+
+Intrinsics are checked twice per segment: at initialisation (the essential matrix, which assumes
+K, must keep nearly the fundamental matrix's inliers) and after the first keyframes (bundle-adjusted
+reprojection error). A failure logs a warning naming the likely cause; tracking goes on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import defaultdict
+
+import gtsam
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frontends.base import TrackingState, TrackResult
+from frontends.mono_vo.config import MonoVoConfig
+from frontends.mono_vo.features import Features, OrbExtractor
+from frontends.mono_vo.geometry import invert, transform
+from frontends.mono_vo.initializer import Initialisation, Initializer
+from frontends.mono_vo.local_ba import local_bundle_adjustment
+from frontends.mono_vo.map import KeyframeState, SegmentMap
+from frontends.mono_vo.tracker import PoseEstimate, Tracker
+from frontends.mono_vo.triangulation import triangulate_new_points
+from frontends.types import CameraIntrinsics, Frame, Keyframe
+
+log = logging.getLogger(__name__)
+
+
+class MonoVo:
+    """Monocular visual odometry with a local map, local bundle adjustment and map segments."""
+
+    name = "mono-vo"
+
+    def __init__(self, camera: CameraIntrinsics, config: MonoVoConfig) -> None:
+        self.camera = camera
+        self.config = config
+        self.K = camera.K
+        self.extractor = OrbExtractor(config.orb, camera)
+        count_scale = self.extractor.budget / config.orb.nfeatures
+        self.min_features = max(10, round(config.min_features * count_scale))
+        self.triangulation_radius = config.keyframes.search_fraction * float(
+            np.hypot(camera.width, camera.height)
+        )
+        self.octave_sigma = config.orb.scale_factor ** np.arange(config.orb.levels, dtype=np.float64)
+        self.initializer = Initializer(
+            config.init, self.K, count_scale, config.seed, float(np.hypot(camera.width, camera.height))
+        )
+        self.tracker = Tracker(
+            config.tracking, config.relocalisation, self.K, self.octave_sigma,
+            (camera.width, camera.height), count_scale, config.seed,
+        )  # fmt: skip
+        self.segment_map = SegmentMap(0)
+        self.all_keyframes: list[KeyframeState] = []
+        self.mode: TrackingState = "initialising"
+        self.T_cw_last: np.ndarray | None = None
+        #: Constant-velocity model: last inter-frame motion (T_cw(k) = velocity @ T_cw(k-1)).
+        self.velocity = np.eye(4)
+        self.last_frame_index = -1
+        self.failed_relocalisations = 0
+        #: Frames seen since the initialisation reference: posed against the new map once it exists.
+        self.pending: list[tuple[int, float, Features]] = []
+        self.intrinsics_warned = False
+        #: Seconds spent per stage (orb, initialise, track, keyframe, bundle_adjustment, relocalise).
+        self.stage_seconds: dict[str, float] = defaultdict(float)
+
+    # -- the Frontend protocol --------------------------------------------------------------------
+
+    def track(self, frame: Frame) -> TrackResult:
+        start = time.perf_counter()
+        features = self.extractor.extract(frame.gray)
+        self.stage_seconds["orb"] += time.perf_counter() - start
+        if len(features) < self.min_features:
+            if self.mode != "initialising":
+                self.mode = "lost"
+            return self._result(frame, "lost")
+        if self.mode == "initialising":
+            return self._timed("initialise", self._initialise, frame, features)
+        tree = cKDTree(features.points)
+        if self.mode == "tracking":
+            result = self._timed("track", self._track, frame, features, tree)
+            if result is not None:
+                return result
+            self.mode = "lost"
+        return self._timed("relocalise", self._relocalise, frame, features, tree)
+
+    def keyframes(self) -> list[Keyframe]:
+        for kf in self.segment_map.keyframes:
+            self._sync_output(kf)
+        return [kf.output for kf in self.all_keyframes]
+
+    # -- states ------------------------------------------------------------------------------------
+
+    def _initialise(self, frame: Frame, features: Features) -> TrackResult:
+        init = self.initializer.try_frame(frame.index, frame.timestamp, features, frame.image)
+        if init is None:
+            reference = self.initializer.reference
+            self.pending.append((frame.index, frame.timestamp, features))
+            self.pending = [p for p in self.pending if reference is not None and p[0] >= reference.index]
+            return self._result(frame, "initialising")
+        self._check_essential_share(init)
+        first = self._new_keyframe(
+            init.reference_index, init.reference_timestamp, np.eye(4), init.reference, init.reference_image
+        )
+        second = self._new_keyframe(frame.index, frame.timestamp, init.T_cw, features, frame.image)
+        ids = self.segment_map.points.add(init.points_w, features.descriptors[init.current_idx], first.id, 0)
+        self.segment_map.observe(first, init.reference_idx, ids)
+        self.segment_map.observe(second, init.current_idx, ids)
+        self._bundle_adjust()
+        second.output.odometry_covariance = self._odometry_covariance(first, second, len(ids))
+        steps = max(1, frame.index - init.reference_index)
+        self.velocity = _fraction_of_motion(second.T_cw @ invert(first.T_cw), 1.0 / steps)
+        self.mode = "tracking"
+        self.failed_relocalisations = 0
+        backfilled = self._backfill(first, second)
+        return dataclasses.replace(
+            self._tracked(frame, second.T_cw, "tracking", second), backfilled=backfilled
+        )
+
+    def _backfill(self, first: KeyframeState, second: KeyframeState) -> tuple[TrackResult, ...]:
+        """Poses of the frames seen while initialising: the reference is keyframe 0; the frames
+        between it and the second keyframe are tracked against the new map from an interpolated
+        prediction. A frame that does not track keeps its "initialising" result."""
+        results = [
+            TrackResult(
+                first.frame_index, first.timestamp, "tracking", invert(first.T_cw),
+                self.segment_map.segment, first.output,
+            )
+        ]  # fmt: skip
+        span = second.frame_index - first.frame_index
+        motion = second.T_cw @ invert(first.T_cw)
+        for index, timestamp, features in self.pending:
+            if not first.frame_index < index < second.frame_index:
+                continue
+            predicted = _fraction_of_motion(motion, (index - first.frame_index) / span) @ first.T_cw
+            estimate = self.tracker.track(
+                self.segment_map, features, cKDTree(features.points), predicted, index
+            )
+            if estimate is not None:
+                results.append(
+                    TrackResult(index, timestamp, "tracking", invert(estimate.T_cw), self.segment_map.segment)
+                )
+        self.pending = []
+        return tuple(results)
+
+    def _track(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult | None:
+        assert self.T_cw_last is not None
+        steps = max(1, frame.index - self.last_frame_index)
+        predicted = _fraction_of_motion(self.velocity, steps) @ self.T_cw_last
+        estimate = self.tracker.track(self.segment_map, features, tree, predicted, frame.index)
+        if estimate is None:
+            return None
+        self.velocity = _fraction_of_motion(estimate.T_cw @ invert(self.T_cw_last), 1.0 / steps)
+        keyframe = None
+        if self._needs_keyframe(frame, estimate):
+            keyframe = self._timed("keyframe", self._add_keyframe, frame, features, estimate)
+        return self._tracked(frame, estimate.T_cw, "tracking", keyframe)
+
+    def _relocalise(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult:
+        estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index)
+        if estimate is not None:
+            log.info("frame %d: relocalised in segment %d", frame.index, self.segment_map.segment)
+            self.mode = "tracking"
+            self.failed_relocalisations = 0
+            self.velocity = np.eye(4)
+            return self._tracked(frame, estimate.T_cw, "relocalised", None)
+        self.failed_relocalisations += 1
+        if self.failed_relocalisations >= self.config.relocalisation.patience:
+            self._start_segment(frame)
+        return self._result(frame, "lost")
+
+    def _start_segment(self, frame: Frame) -> None:
+        for kf in self.segment_map.keyframes:
+            self._sync_output(kf)
+        segment = self.segment_map.segment + 1
+        log.warning(
+            "frame %d: relocalisation failed %d times; starting map segment %d",
+            frame.index, self.failed_relocalisations, segment,
+        )  # fmt: skip
+        self.segment_map = SegmentMap(segment)
+        self.initializer.reset()
+        self.pending = []
+        self.mode = "initialising"
+        self.T_cw_last = None
+        self.failed_relocalisations = 0
+
+    # -- keyframes ---------------------------------------------------------------------------------
+
+    def _needs_keyframe(self, frame: Frame, estimate: PoseEstimate) -> bool:
+        s = self.config.keyframes
+        last = self.segment_map.keyframes[-1]
+        elapsed = frame.timestamp - last.timestamp
+        if elapsed < s.min_interval:
+            return False
+        # ORB-SLAM counts only the last keyframe's established points (seen by >= 3 keyframes).
+        ids = self.segment_map.live_ids(last)
+        observations = self.segment_map.points.observations[ids[ids >= 0]]
+        established = int((observations >= min(3, len(self.segment_map.keyframes))).sum())
+        tracked = len(estimate.keypoint_idx)
+        # The second test catches fast forward motion, where the map thins out before points establish.
+        return (
+            tracked < s.tracked_ratio * established
+            or tracked < s.min_tracked_share * len(observations)
+            or elapsed >= s.max_interval
+        )
+
+    def _add_keyframe(self, frame: Frame, features: Features, estimate: PoseEstimate) -> KeyframeState:
+        previous = self.segment_map.keyframes[-1]
+        keyframe = self._new_keyframe(frame.index, frame.timestamp, estimate.T_cw, features, frame.image)
+        self.segment_map.observe(keyframe, estimate.keypoint_idx, estimate.point_ids)
+        neighbours = self.segment_map.keyframes[-1 - self.config.keyframes.triangulation_neighbours : -1]
+        for neighbour in reversed(neighbours):
+            triangulate_new_points(
+                self.segment_map, keyframe, neighbour, self.K, self.octave_sigma, self.config.keyframes,
+                self.config.tracking.inlier_threshold, self.triangulation_radius,
+            )  # fmt: skip
+        self._bundle_adjust()
+        self.segment_map.cull(keyframe.id)
+        keyframe.output.odometry_covariance = self._odometry_covariance(
+            previous, keyframe, len(estimate.keypoint_idx)
+        )
+        return keyframe
+
+    def _new_keyframe(
+        self, frame_index: int, timestamp: float, T_cw: np.ndarray, features: Features, image: np.ndarray
+    ) -> KeyframeState:
+        output = Keyframe(
+            id=len(self.all_keyframes), frame_index=frame_index, timestamp=timestamp, pose=invert(T_cw),
+            keypoints=features.keypoints, descriptors=features.descriptors, image=image,
+            segment=self.segment_map.segment,
+        )  # fmt: skip
+        state = KeyframeState(
+            output.id,
+            frame_index,
+            timestamp,
+            T_cw.copy(),
+            features,
+            np.full(len(features), -1, np.int64),
+            output,
+        )
+        self.segment_map.keyframes.append(state)
+        self.all_keyframes.append(state)
+        return state
+
+    def _bundle_adjust(self) -> None:
+        if not self.config.ba.enabled:
+            return
+        start = time.perf_counter()
+        stats = local_bundle_adjustment(self.segment_map, self.K, self.octave_sigma, self.config.ba)
+        self.stage_seconds["bundle_adjustment"] += time.perf_counter() - start
+        for kf in self.segment_map.keyframes[-self.config.ba.window :]:
+            self._sync_output(kf)
+        check = self.config.intrinsics_check
+        if (
+            stats is not None
+            and len(self.segment_map.keyframes) == check.check_after_keyframes
+            and stats.median_error_px > check.max_median_reprojection_px
+        ):
+            self._warn_intrinsics(
+                f"median reprojection error {stats.median_error_px:.2f} px after bundle adjustment of the "
+                f"first {check.check_after_keyframes} keyframes "
+                f"(expected < {check.max_median_reprojection_px} px)"
+            )
+
+    def _odometry_covariance(
+        self, previous: KeyframeState, current: KeyframeState, points: int
+    ) -> np.ndarray:
+        """Covariance of the Sim(3) motion between two keyframes: rotation, translation, log-scale."""
+        s = self.config.keyframes
+        inflation = np.sqrt(max(1.0, s.covariance_reference_points / max(points, 1)))
+        distance = float(np.linalg.norm(invert(current.T_cw)[:3, 3] - invert(previous.T_cw)[:3, 3]))
+        sigmas = (
+            inflation
+            * np.r_[
+                np.full(3, np.radians(s.rotation_sigma_deg)),
+                np.full(3, max(s.translation_sigma_ratio * distance, 1e-6)),
+                s.log_scale_sigma,
+            ]
+        )
+        return np.diag(sigmas**2)
+
+    def _sync_output(self, kf: KeyframeState) -> None:
+        """Refresh the API keyframe (of the current segment) from its pose and the map points."""
+        kf.output.pose = invert(kf.T_cw)
+        ids = self.segment_map.live_ids(kf)
+        points3d = np.full((len(ids), 3), np.nan)
+        mapped = ids >= 0
+        points3d[mapped] = transform(kf.T_cw, self.segment_map.points.positions[ids[mapped]])
+        kf.output.points3d = points3d
+
+    # -- intrinsics check --------------------------------------------------------------------------
+
+    def _check_essential_share(self, init: Initialisation) -> None:
+        minimum = self.config.intrinsics_check.min_essential_share
+        if init.essential_share < minimum:
+            self._warn_intrinsics(
+                f"the essential matrix keeps only {init.essential_share:.0%} of the fundamental matrix's "
+                f"inliers at initialisation (expected >= {minimum:.0%})"
+            )
+
+    def _warn_intrinsics(self, evidence: str) -> None:
+        if self.intrinsics_warned:
+            return
+        self.intrinsics_warned = True
+        c = self.camera
+        log.warning(
+            "camera intrinsics look wrong (fx=%.1f fy=%.1f cx=%.1f cy=%.1f from %s): %s; check the "
+            "calibration (--calib), the trajectory is unreliable",
+            c.fx, c.fy, c.cx, c.cy, c.source or "unknown source", evidence,
+        )  # fmt: skip
+
+    # -- helpers -----------------------------------------------------------------------------------
+
+    def _tracked(
+        self, frame: Frame, T_cw: np.ndarray, state: TrackingState, keyframe: KeyframeState | None
+    ) -> TrackResult:
+        self.T_cw_last = T_cw
+        self.last_frame_index = frame.index
+        return TrackResult(
+            frame.index, frame.timestamp, state, invert(T_cw), self.segment_map.segment,
+            keyframe.output if keyframe is not None else None,
+        )  # fmt: skip
+
+    def _result(self, frame: Frame, state: TrackingState) -> TrackResult:
+        return TrackResult(frame.index, frame.timestamp, state, None, self.segment_map.segment)
+
+    def _timed(self, stage: str, function, *args):  # type: ignore[no-untyped-def]
+        start = time.perf_counter()
+        try:
+            return function(*args)
+        finally:
+            self.stage_seconds[stage] += time.perf_counter() - start
+
+
+def _fraction_of_motion(T: np.ndarray, fraction: float) -> np.ndarray:
+    """``T ** fraction`` on SE(3) (e.g. the per-frame share of a motion over several frames)."""
+    if fraction == 1.0:
+        return T.copy()
+    return np.asarray(gtsam.Pose3.Expmap(fraction * gtsam.Pose3.Logmap(gtsam.Pose3(T))).matrix())

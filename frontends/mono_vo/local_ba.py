@@ -1,0 +1,169 @@
+"""Local bundle adjustment with GTSAM after every new keyframe.
+
+Variables: the poses of the last ``window`` keyframes and every map point they observe. Keyframes
+outside the window that also observe those points enter with a tight prior (fixed), like ORB-SLAM's
+local BA, which anchors the window to the older map: position, orientation and scale of the map
+stay where the earlier keyframes put them. At the start of a segment there are no older keyframes;
+then the first keyframe is fixed and the second gets a tight prior on its position only, which keeps
+the first baseline (the map's scale) and leaves its rotation free.
+
+Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels with a Huber kernel; the pixel
+sigma grows with the keypoint's pyramid level. Levenberg-Marquardt runs a few iterations (bounded
+time per keyframe). Afterwards observations whose reprojection error exceeds ``huber_k`` sigmas
+(chi2 95 % with 2 dof) or that fell behind the camera are removed from the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from frontends.mono_vo.config import BundleAdjustmentSettings
+from frontends.mono_vo.geometry import invert, project
+from frontends.mono_vo.map import KeyframeState, SegmentMap
+
+_FIXED_SIGMA = 1e-6
+_FREE_ROTATION_SIGMA = 10.0
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentStats:
+    keyframes: int
+    points: int
+    observations: int
+    outliers: int
+    #: Median reprojection error (px) after the optimisation.
+    median_error_px: float
+
+
+def local_bundle_adjustment(
+    segment_map: SegmentMap, K: np.ndarray, octave_sigma: np.ndarray, settings: BundleAdjustmentSettings
+) -> BundleAdjustmentStats | None:
+    keyframes = segment_map.keyframes
+    window = keyframes[-settings.window :]
+    point_ids = np.unique(np.concatenate([segment_map.live_ids(kf) for kf in window]))
+    point_ids = point_ids[point_ids >= 0]
+    if len(point_ids) == 0:
+        return None
+    fixed = _anchoring_keyframes(segment_map, len(window), point_ids, settings.max_fixed)
+    observations = _observations(segment_map, [*window, *fixed], point_ids)
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2])
+    noise_by_octave = [
+        gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(settings.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, sigma),
+        )
+        for sigma in octave_sigma
+    ]
+    for kf in [*window, *fixed]:
+        values.insert(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)))
+    positions = segment_map.points.positions
+    for pid in point_ids:
+        values.insert(gtsam.symbol("l", int(pid)), positions[pid])
+    for kf, keypoint_idx, ids in observations:
+        pose_key = gtsam.symbol("x", kf.id)
+        pixels = kf.features.points[keypoint_idx]
+        octaves = np.minimum(kf.features.octaves[keypoint_idx], len(noise_by_octave) - 1)
+        for pixel, octave, pid in zip(pixels, octaves.tolist(), ids.tolist(), strict=True):
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    pixel,
+                    noise_by_octave[octave],
+                    pose_key,
+                    gtsam.symbol("l", pid),
+                    calibration,
+                    False,
+                    False,
+                )
+            )
+    _add_gauge_priors(graph, segment_map, window, fixed)
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(settings.iterations)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+
+    for kf in window:
+        kf.T_cw = invert(result.atPose3(gtsam.symbol("x", kf.id)).matrix())
+    for pid in point_ids:
+        positions[pid] = result.atPoint3(gtsam.symbol("l", int(pid)))
+    outliers, errors = _remove_outliers(segment_map, K, octave_sigma, observations, settings.huber_k)
+    return BundleAdjustmentStats(
+        len(window), len(point_ids), sum(len(o[1]) for o in observations), outliers,
+        float(np.median(errors)) if len(errors) else 0.0,
+    )  # fmt: skip
+
+
+def _anchoring_keyframes(
+    segment_map: SegmentMap, window_size: int, point_ids: np.ndarray, max_fixed: int
+) -> list[KeyframeState]:
+    """The most recent keyframes before the window that observe any of the window's points."""
+    fixed = []
+    for kf in reversed(segment_map.keyframes[:-window_size]):
+        if np.isin(segment_map.live_ids(kf), point_ids).any():
+            fixed.append(kf)
+            if len(fixed) == max_fixed:
+                break
+    return fixed
+
+
+def _observations(
+    segment_map: SegmentMap, keyframes: list[KeyframeState], point_ids: np.ndarray
+) -> list[tuple[KeyframeState, np.ndarray, np.ndarray]]:
+    """Per keyframe: indices of its keypoints that observe ``point_ids``, and those point ids."""
+    result = []
+    for kf in keyframes:
+        ids = segment_map.live_ids(kf)
+        keypoint_idx = np.flatnonzero(np.isin(ids, point_ids))
+        result.append((kf, keypoint_idx, ids[keypoint_idx]))
+    return result
+
+
+def _add_gauge_priors(
+    graph: gtsam.NonlinearFactorGraph,
+    segment_map: SegmentMap,
+    window: list[KeyframeState],
+    fixed: list[KeyframeState],
+) -> None:
+    tight = gtsam.noiseModel.Isotropic.Sigma(6, _FIXED_SIGMA)
+    for kf in fixed:
+        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)), tight))
+    if fixed:
+        return
+    # Segment start: fix the first keyframe, and the position (hence the scale) of the second.
+    first, *rest = window
+    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first.id), gtsam.Pose3(invert(first.T_cw)), tight))
+    if rest:
+        position_only = gtsam.noiseModel.Diagonal.Sigmas(
+            np.r_[np.full(3, _FREE_ROTATION_SIGMA), np.full(3, _FIXED_SIGMA)]
+        )
+        second = rest[0]
+        graph.add(
+            gtsam.PriorFactorPose3(
+                gtsam.symbol("x", second.id), gtsam.Pose3(invert(second.T_cw)), position_only
+            )
+        )
+
+
+def _remove_outliers(
+    segment_map: SegmentMap,
+    K: np.ndarray,
+    octave_sigma: np.ndarray,
+    observations: list[tuple[KeyframeState, np.ndarray, np.ndarray]],
+    huber_k: float,
+) -> tuple[int, np.ndarray]:
+    removed = 0
+    errors = []
+    for kf, keypoint_idx, ids in observations:
+        uv, depth = project(K, kf.T_cw, segment_map.points.positions[ids])
+        error = np.nan_to_num(np.linalg.norm(uv - kf.features.points[keypoint_idx], axis=1), nan=np.inf)
+        sigma = octave_sigma[np.minimum(kf.features.octaves[keypoint_idx], len(octave_sigma) - 1)]
+        bad = (depth <= 0) | (error > huber_k * sigma)
+        segment_map.drop_observations(kf, keypoint_idx[bad])
+        removed += int(bad.sum())
+        errors.append(error[~bad])
+    return removed, np.concatenate(errors) if errors else np.zeros(0)

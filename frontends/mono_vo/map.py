@@ -1,0 +1,113 @@
+"""The map of one segment: map points in growable numpy arrays, and the keyframes that observe them.
+
+Observations live on the keyframes (``KeyframeState.point_ids``: the map point of each keypoint,
+-1 for none), so every query the tracker and bundle adjustment make is a vectorised gather over a
+few keyframes rather than a walk over per-point Python objects. Per point the store keeps position,
+descriptor (the newest observation's: appearance drifts with the viewpoint), the number of keyframes
+observing it, and ORB-SLAM's visible/found counters for culling points that are predicted in view
+but rarely matched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from frontends.mono_vo.features import Features
+from frontends.types import Keyframe
+
+
+@dataclass
+class KeyframeState:
+    """A keyframe as the frontend works with it."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    #: World-to-camera pose (bundle adjusted).
+    T_cw: np.ndarray
+    features: Features
+    #: (N,) map point of each keypoint, -1 where none.
+    point_ids: np.ndarray
+    #: What the API hands out (pose and points3d refreshed from T_cw and the map).
+    output: Keyframe
+
+
+@dataclass
+class PointStore:
+    """Map points of one segment; ids index the arrays and are never reused."""
+
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
+    observations: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    visible: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    found: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    first_keyframe: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    alive: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def add(
+        self, positions: np.ndarray, descriptors: np.ndarray, keyframe_id: int, observations: int
+    ) -> np.ndarray:
+        """Append points; returns their ids."""
+        count = len(positions)
+        ids = np.arange(len(self), len(self) + count)
+        self.positions = np.concatenate([self.positions, positions])
+        self.descriptors = np.concatenate([self.descriptors, descriptors])
+        self.observations = np.concatenate([self.observations, np.full(count, observations)])
+        self.visible = np.concatenate([self.visible, np.ones(count, np.int64)])
+        self.found = np.concatenate([self.found, np.ones(count, np.int64)])
+        self.first_keyframe = np.concatenate([self.first_keyframe, np.full(count, keyframe_id)])
+        self.alive = np.concatenate([self.alive, np.ones(count, bool)])
+        return ids
+
+
+class SegmentMap:
+    """Keyframes and map points of one map segment."""
+
+    def __init__(self, segment: int) -> None:
+        self.segment = segment
+        self.points = PointStore()
+        self.keyframes: list[KeyframeState] = []
+
+    def live_ids(self, keyframe: KeyframeState) -> np.ndarray:
+        """The keyframe's point ids with dead points replaced by -1 (kept in place)."""
+        ids = keyframe.point_ids
+        valid = ids >= 0
+        valid[valid] = self.points.alive[ids[valid]]
+        ids[~valid] = -1
+        return ids
+
+    def local_point_ids(self, count: int) -> np.ndarray:
+        """Alive points observed by the last ``count`` keyframes."""
+        recent = [self.live_ids(kf) for kf in self.keyframes[-count:]]
+        if not recent:
+            return np.zeros(0, np.int64)
+        ids = np.unique(np.concatenate(recent))
+        return ids[ids >= 0]
+
+    def observe(self, keyframe: KeyframeState, keypoint_idx: np.ndarray, point_ids: np.ndarray) -> None:
+        """Record that the keyframe sees ``point_ids`` at ``keypoint_idx``."""
+        keyframe.point_ids[keypoint_idx] = point_ids
+        self.points.observations[point_ids] += 1
+        self.points.descriptors[point_ids] = keyframe.features.descriptors[keypoint_idx]
+
+    def drop_observations(self, keyframe: KeyframeState, keypoint_idx: np.ndarray) -> None:
+        ids = keyframe.point_ids[keypoint_idx]
+        ids = ids[ids >= 0]
+        np.subtract.at(self.points.observations, ids, 1)
+        keyframe.point_ids[keypoint_idx] = -1
+
+    def cull(self, current_keyframe_id: int, min_found_ratio: float = 0.25) -> int:
+        """ORB-SLAM's culling of recent points: rarely matched when visible, or seen by <= 2 keyframes
+        two keyframes after their creation. Returns how many points died."""
+        p = self.points
+        age = current_keyframe_id - p.first_keyframe
+        rarely_found = (p.visible >= 10) & (p.found < min_found_ratio * p.visible)
+        unconfirmed = (age >= 2) & (p.observations <= 2)
+        dead = p.alive & (rarely_found | unconfirmed | (p.observations < 1))
+        p.alive &= ~dead
+        return int(dead.sum())

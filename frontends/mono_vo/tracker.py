@@ -1,0 +1,241 @@
+"""Frame tracking against the local map, and relocalisation against earlier keyframes.
+
+Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
+
+1. Predict the pose with a constant velocity model.
+2. Project the points of the last ``local_keyframes`` keyframes; match them to keypoints within
+   ``search_radius`` px (Hamming limit, ratio test; ``features.match_in_radius``). Too few matches
+   (a sudden motion) doubles the radius once.
+3. PnP RANSAC (seeded USAC) on those matches, then Levenberg-Marquardt refinement of its inliers:
+   the prediction only chooses candidates, it never biases the pose.
+4. Project again from that pose with the narrow ``refine_radius``, which recovers the points the
+   wide search missed or confused, and refine the pose twice, each time keeping the matches whose
+   reprojection error is within 2.45 sigma of their pyramid level.
+
+Relocalisation matches the frame's descriptors against the map points of recent keyframes (newest
+first), solves PnP RANSAC, and accepts a pose only if tracking the local map from it then finds
+``min_inliers`` inliers: a pose is never taken from a handful of descriptor matches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from frontends.mono_vo.config import RelocalisationSettings, TrackingSettings
+from frontends.mono_vo.features import Features, match_descriptors, match_in_radius
+from frontends.mono_vo.geometry import fit_or_none, frame_seed, from_rvec, project, to_rvec, usac_params
+from frontends.mono_vo.map import SegmentMap
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    #: World-to-camera pose.
+    T_cw: np.ndarray
+    #: Inlier keypoints of the frame and the map points they see.
+    keypoint_idx: np.ndarray
+    point_ids: np.ndarray
+
+
+class Tracker:
+    def __init__(
+        self,
+        settings: TrackingSettings,
+        relocalisation: RelocalisationSettings,
+        K: np.ndarray,
+        octave_sigma: np.ndarray,
+        image_size: tuple[int, int],
+        count_scale: float,
+        seed: int,
+    ) -> None:
+        self.settings = settings
+        self.relocalisation = relocalisation
+        self.K = K
+        self.octave_sigma = octave_sigma
+        self.width, self.height = image_size
+        self.min_inliers = max(15, round(settings.min_inliers * count_scale))
+        self.min_reloc_pnp = max(10, round(relocalisation.min_pnp_inliers * count_scale))
+        self.min_reloc_inliers = max(20, round(relocalisation.min_inliers * count_scale))
+        self.seed = seed
+
+    def track(
+        self,
+        segment_map: SegmentMap,
+        features: Features,
+        tree: cKDTree,
+        T_predicted: np.ndarray,
+        frame_index: int,
+    ) -> PoseEstimate | None:
+        s = self.settings
+        local_ids = segment_map.local_point_ids(s.local_keyframes)
+        pairs = self._match(segment_map, local_ids, features, tree, T_predicted, s.search_radius)
+        if len(pairs[0]) < 2 * self.min_inliers:
+            wider = self._match(segment_map, local_ids, features, tree, T_predicted, 2 * s.search_radius)
+            if len(wider[0]) > len(pairs[0]):
+                pairs = wider
+        keypoint_idx, point_ids = pairs
+        T_cw = self._pnp_ransac(
+            segment_map, features, keypoint_idx, point_ids, frame_index, self.min_inliers // 2
+        )
+        if T_cw is None:
+            return None
+        estimate = self.refine_with_local_map(segment_map, local_ids, features, tree, T_cw)
+        if estimate is None or len(estimate.keypoint_idx) < self.min_inliers:
+            return None
+        return estimate
+
+    def refine_with_local_map(
+        self,
+        segment_map: SegmentMap,
+        local_ids: np.ndarray,
+        features: Features,
+        tree: cKDTree,
+        T_cw: np.ndarray,
+    ) -> PoseEstimate | None:
+        """Narrow projection search around ``T_cw``, pose refinement with outlier rejection."""
+        keypoint_idx, point_ids = self._match(
+            segment_map, local_ids, features, tree, T_cw, self.settings.refine_radius
+        )
+        for _ in range(2):
+            if len(keypoint_idx) < 6:
+                return None
+            T_cw = self._refine(segment_map, features, keypoint_idx, point_ids, T_cw)
+            inlier = self._inliers(segment_map, features, keypoint_idx, point_ids, T_cw)
+            keypoint_idx, point_ids = keypoint_idx[inlier], point_ids[inlier]
+        points = segment_map.points
+        uv, depth = project(self.K, T_cw, points.positions[local_ids])
+        points.visible[local_ids[self._in_image(uv, depth)]] += 1
+        points.found[point_ids] += 1
+        return PoseEstimate(T_cw, keypoint_idx, point_ids)
+
+    def relocalise(
+        self, segment_map: SegmentMap, features: Features, tree: cKDTree, frame_index: int
+    ) -> PoseEstimate | None:
+        r = self.relocalisation
+        keyframes = segment_map.keyframes
+        for position in range(len(keyframes) - 1, max(-1, len(keyframes) - 1 - r.max_keyframes), -1):
+            anchor = keyframes[position]
+            ids = segment_map.live_ids(anchor)
+            observed = np.flatnonzero(ids >= 0)
+            frame_idx, anchor_idx = match_descriptors(
+                features.descriptors,
+                anchor.features.descriptors[observed],
+                r.ratio,
+                self.settings.max_hamming,
+            )
+            if len(frame_idx) < self.min_reloc_pnp:
+                continue
+            point_ids = ids[observed[anchor_idx]]
+            T_cw = self._pnp_ransac(
+                segment_map, features, frame_idx, point_ids, frame_index, self.min_reloc_pnp
+            )
+            if T_cw is None:
+                continue
+            nearby = keyframes[
+                max(0, position - self.settings.local_keyframes // 2) : position
+                + 1
+                + self.settings.local_keyframes // 2
+            ]
+            local_ids = np.unique(np.concatenate([segment_map.live_ids(kf) for kf in nearby]))
+            estimate = self.refine_with_local_map(
+                segment_map, local_ids[local_ids >= 0], features, tree, T_cw
+            )
+            if estimate is not None and len(estimate.keypoint_idx) >= self.min_reloc_inliers:
+                return estimate
+        return None
+
+    def _match(
+        self,
+        segment_map: SegmentMap,
+        local_ids: np.ndarray,
+        features: Features,
+        tree: cKDTree,
+        T_cw: np.ndarray,
+        radius: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        points = segment_map.points
+        uv, depth = project(self.K, T_cw, points.positions[local_ids])
+        visible = self._in_image(uv, depth)
+        candidates = local_ids[visible]
+        s = self.settings
+        point_idx, keypoint_idx = match_in_radius(
+            uv[visible],
+            points.descriptors[candidates],
+            tree,
+            features.descriptors,
+            radius,
+            s.max_hamming,
+            s.ratio,
+        )
+        return keypoint_idx, candidates[point_idx]
+
+    def _in_image(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            return (
+                (depth > 0)
+                & (uv[:, 0] >= 0)
+                & (uv[:, 0] < self.width)
+                & (uv[:, 1] >= 0)
+                & (uv[:, 1] < self.height)
+            )
+
+    def _pnp_ransac(
+        self,
+        segment_map: SegmentMap,
+        features: Features,
+        keypoint_idx: np.ndarray,
+        point_ids: np.ndarray,
+        frame_index: int,
+        min_inliers: int,
+    ) -> np.ndarray | None:
+        if len(keypoint_idx) < max(min_inliers, 6):
+            return None
+        object_points = segment_map.points.positions[point_ids]
+        image_points = features.points[keypoint_idx]
+        params = usac_params(
+            frame_seed(self.seed, frame_index, 4),
+            self.settings.pnp_threshold,
+            thorough=False,
+            max_iterations=200,
+        )
+        fitted = fit_or_none(cv2.solvePnPRansac, object_points, image_points, self.K, None, params=params)
+        if fitted is None:
+            return None
+        ok, _, rvec, tvec, inliers = fitted
+        if not ok or inliers is None or len(inliers) < min_inliers:
+            return None
+        inliers = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(
+            object_points[inliers], image_points[inliers], self.K, None, rvec, tvec
+        )
+        return from_rvec(rvec, tvec)
+
+    def _refine(
+        self,
+        segment_map: SegmentMap,
+        features: Features,
+        keypoint_idx: np.ndarray,
+        point_ids: np.ndarray,
+        T_cw: np.ndarray,
+    ) -> np.ndarray:
+        rvec, tvec = to_rvec(T_cw)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            segment_map.points.positions[point_ids], features.points[keypoint_idx], self.K, None, rvec, tvec
+        )
+        return from_rvec(rvec, tvec)
+
+    def _inliers(
+        self,
+        segment_map: SegmentMap,
+        features: Features,
+        keypoint_idx: np.ndarray,
+        point_ids: np.ndarray,
+        T_cw: np.ndarray,
+    ) -> np.ndarray:
+        uv, depth = project(self.K, T_cw, segment_map.points.positions[point_ids])
+        error = np.nan_to_num(np.linalg.norm(uv - features.points[keypoint_idx], axis=1), nan=np.inf)
+        sigma = self.octave_sigma[np.minimum(features.octaves[keypoint_idx], len(self.octave_sigma) - 1)]
+        return (depth > 0) & (error < self.settings.inlier_threshold * sigma)

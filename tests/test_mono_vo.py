@@ -1,0 +1,187 @@
+"""The ``mono-vo`` frontend: initialisation, tracking accuracy, failure modes, determinism.
+
+Synthetic tests use the session's 320x240 loop scene (fast); the KITTI 06 clip test needs the
+shared data. Speed is measured by ``eval/bench_frontend.py``, never here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eval.bench_frontend import evaluate
+from frontends.base import FRONTENDS, Frontend, TrackResult
+from frontends.datasets import open_dataset
+from frontends.mono_vo import MonoVoConfig, create
+from frontends.mono_vo.features import OrbExtractor
+from frontends.mono_vo.initializer import Initializer
+from frontends.types import CameraIntrinsics, Frame
+
+
+@pytest.fixture(scope="module")
+def loop_frames(small_loop_scene: Path) -> tuple[CameraIntrinsics, list[Frame]]:
+    """The first 150 frames (5 s) of the 320x240 synthetic loop, in memory."""
+    dataset = open_dataset(small_loop_scene)
+    frames = []
+    for frame in dataset:
+        if frame.index >= 150:
+            break
+        frames.append(frame)
+    return dataset.camera, frames
+
+
+def run(frontend: Frontend, frames: Sequence[Frame]) -> list[TrackResult]:
+    return [frontend.track(frame) for frame in frames]
+
+
+def black(frame: Frame) -> Frame:
+    return dataclasses.replace(frame, image=np.zeros_like(frame.image))
+
+
+def angle_deg(cosine: float) -> float:
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+def test_registered_and_configurable(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, _ = loop_frames
+    frontend = FRONTENDS.load("mono-vo")(camera, ["seed=7", "orb.nfeatures=800", "ba.window=4"])
+    assert isinstance(frontend, Frontend)
+    assert frontend.name == "mono-vo"
+    config = create(camera, ["seed=7"]).config
+    assert config == dataclasses.replace(MonoVoConfig(), seed=7)
+
+
+def test_initialisation_recovers_relative_pose(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    config = MonoVoConfig()
+    extractor = OrbExtractor(config.orb, camera)
+    initializer = Initializer(config.init, camera.K, extractor.budget / config.orb.nfeatures, 0, 400.0)
+    first, second = frames[0], frames[12]
+    assert (
+        initializer.try_frame(first.index, first.timestamp, extractor.extract(first.gray), first.image)
+        is None
+    )
+    init = initializer.try_frame(second.index, second.timestamp, extractor.extract(second.gray), second.image)
+    assert init is not None
+    assert init.reference_index == 0
+    assert first.gt_pose is not None and second.gt_pose is not None
+    true_motion = np.linalg.inv(second.gt_pose) @ first.gt_pose  # reference camera -> current camera
+    rotation_error = angle_deg((np.trace(true_motion[:3, :3].T @ init.T_cw[:3, :3]) - 1) / 2)
+    direction = true_motion[:3, 3] / np.linalg.norm(true_motion[:3, 3])
+    assert rotation_error < 1.0
+    assert angle_deg(float(direction @ init.T_cw[:3, 3])) < 3.0
+    assert np.linalg.norm(init.T_cw[:3, 3]) == pytest.approx(1.0)
+    assert len(init.points_w) >= 20
+
+
+def test_tracks_synthetic_scene(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    figures = evaluate(camera, frames)
+    assert figures.get("frames_lost", 0) == 0
+    assert figures["segments"] == 1
+    assert figures["posed_frames"] >= len(frames) - 15
+    assert figures["ate_percent_of_path"] < 3.0
+
+
+def test_keyframe_contents(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    frontend = create(camera)
+    results = run(frontend, frames[:60])
+    keyframes = frontend.keyframes()
+    assert len(keyframes) >= 3
+    assert [kf.id for kf in keyframes] == list(range(len(keyframes)))
+    assert [r.keyframe.id for r in results if r.keyframe is not None] == [kf.id for kf in keyframes[1:]]
+    for kf in keyframes:
+        n = len(kf.keypoints)
+        assert kf.keypoints.shape == (n, 2) and kf.descriptors.shape == (n, 32)
+        assert kf.descriptors.dtype == np.uint8
+        assert kf.image is not None and kf.image.shape[:2] == (camera.height, camera.width)
+        assert kf.points3d is not None and kf.points3d.shape == (n, 3)
+        mapped = np.isfinite(kf.points3d).all(axis=1)
+        assert mapped.sum() >= 20 and (kf.points3d[mapped, 2] > 0).all()
+        assert kf.pose.shape == (4, 4) and kf.segment == 0
+    assert keyframes[0].odometry_covariance is None
+    for kf in keyframes[1:]:
+        assert kf.odometry_covariance is not None and kf.odometry_covariance.shape == (7, 7)
+        assert (np.linalg.eigvalsh(kf.odometry_covariance) > 0).all()
+    np.testing.assert_allclose(keyframes[0].pose, np.eye(4), atol=1e-6)
+
+
+def test_black_frames_are_lost_without_error(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    frontend = create(camera)
+    results = run(frontend, [black(f) for f in frames[:5]])
+    assert [r.state for r in results] == ["lost"] * 5
+    assert all(r.pose is None for r in results)
+    assert frontend.keyframes() == []
+
+
+def test_frozen_camera_stays_initialising(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    frozen = [dataclasses.replace(frames[0], index=i, timestamp=i / 30) for i in range(30)]
+    frontend = create(camera)
+    assert {r.state for r in run(frontend, frozen)} == {"initialising"}
+    assert frontend.keyframes() == []
+
+
+def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    blackout = range(60, 80)
+    sequence = [black(f) if f.index in blackout else f for f in frames[:130]]
+    frontend = create(camera)
+    results = run(frontend, sequence)
+    assert all(results[i].state == "lost" for i in blackout)
+    after = results[80:]
+    recovered = [r for r in after if r.pose is not None]
+    assert len(recovered) >= 30, "neither relocalised nor re-initialised after the blackout"
+    if any(r.state == "relocalised" for r in after):
+        # Back in the same map: the poses must continue the trajectory (ATE stays small).
+        figures = evaluate(camera, sequence)
+        assert figures["segments"] == 1
+        assert figures["ate_percent_of_path"] < 5.0
+    else:
+        assert {r.segment for r in recovered} == {1}
+        assert all(kf.segment == 1 for kf in frontend.keyframes() if kf.frame_index >= 80)
+
+
+def test_wrong_intrinsics_warn(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]], caplog: pytest.LogCaptureFixture
+) -> None:
+    camera, frames = loop_frames
+    wrong = dataclasses.replace(camera, fx=2 * camera.fx, fy=2 * camera.fy)
+    with caplog.at_level(logging.WARNING, logger="frontends.mono_vo"):
+        run(create(wrong), frames[:90])
+    assert any("intrinsics look wrong" in record.getMessage() for record in caplog.records)
+
+
+def test_correct_intrinsics_do_not_warn(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]], caplog: pytest.LogCaptureFixture
+) -> None:
+    camera, frames = loop_frames
+    with caplog.at_level(logging.WARNING, logger="frontends.mono_vo"):
+        run(create(camera), frames[:90])
+    assert not any("intrinsics" in record.getMessage() for record in caplog.records)
+
+
+def test_deterministic(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    camera, frames = loop_frames
+    first = [r.pose for r in run(create(camera, ["seed=5"]), frames[:50])]
+    second = [r.pose for r in run(create(camera, ["seed=5"]), frames[:50])]
+    assert [p is None for p in first] == [p is None for p in second]
+    for a, b in zip(first, second, strict=True):
+        if a is not None and b is not None:
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.shared
+def test_kitti_clip_accuracy(shared: Path) -> None:
+    dataset = open_dataset(shared / "data/clips/kitti06_f000-050", "kitti")
+    figures = evaluate(dataset.camera, list(dataset))
+    assert figures["posed_frames"] == len(dataset)
+    assert figures["segments"] == 1
+    assert figures["ate_percent_of_path"] <= 0.5
