@@ -1,30 +1,41 @@
-"""``symbio run``: stream a dataset through a frontend and measure its odometry.
+"""``symbio run``: stream a dataset through the SLAM pipeline and measure it.
+
+frontend (each frame) -> object detector, loop detector (each keyframe) -> verifier -> backend
+(``slam_backend.pipeline.LoopClosing``). Components are chosen by name (``--frontend``,
+``--detector``, ``--object-detector``, ``--verifier``, ``--backend``) and configured by a run YAML
+(``--config``: sections ``frontend``, ``detector``, ``object_detector``, ``verifier``, ``backend``,
+``loop_closing``; each may name its component with ``name:``; a YAML without any section is the
+frontend's own config) and by ``--set KEY=VALUE`` (a key starting with one of those section names
+goes to that component, any other key to the frontend). ``--no-loops``: odometry only.
 
 Writes to ``--out DIR``:
 
-* ``trajectory_tum.txt``: the pose of every tracked frame (TUM format). Poses of different map
-  segments are in unrelated frames; the file does not separate them.
-* ``keyframes_tum.txt``: the keyframes with their final poses (after the frontend's refinement).
-* ``metrics.json``: ``dataset``, ``format``, ``frontend``, ``loop_closing`` (false for now),
-  ``frames`` (given to the frontend), ``frames_tracked`` (with a pose), ``tracking_lost`` (state
-  "lost"), ``frontend_failures`` (frames on which the frontend raised; they count as lost),
-  ``images_skipped`` (did not decode), ``keyframes``, ``segments`` (that hold a tracked frame or
-  keyframe), ``fps`` (frames per second of time spent inside the frontend), ``ate_rmse_before``
-  (evo APE, translation RMSE, of the odometry after Sim(3) Umeyama alignment to the ground truth,
-  over the frames of segment ``ate_segment`` (the one with most tracked frames) that have GT;
-  ``ate_frames`` of them), ``path_length`` (GT path length in m over the frames the run covered)
-  and ``interrupted``.
-  Figures that need GT are null without it.
+* ``trajectory_tum.txt``: every posed frame, loop-closed (each frame anchored to the backend's
+  estimate of its keyframe); ``trajectory_odometry_tum.txt``: the same frames, odometry only;
+  ``keyframes_tum.txt``: the loop-closed keyframes. Without loop closing the first equals the second.
+* ``loops.csv``: every verified candidate: query, match (keyframe ids and frames), score, verified,
+  inliers, accepted (the backend's final decision), scale, reason.
+* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frontend_failures``,
+  ``images_skipped``, ``keyframes``, ``segments``, ``fps`` (frames per second of the whole pipeline),
+  ``ms_per_frame_<stage>`` (frontend, objects, loop_detector, verifier, backend), ``ate_rmse_before`` /
+  ``ate_rmse_after`` (evo APE translation RMSE after Sim(3) Umeyama alignment to the GT, odometry vs
+  loop-closed, over the same frames: those of segment ``ate_segment``, the one with most tracked
+  frames), ``ate_rmse_after_all`` (every posed frame; segments are one graph after loop closing),
+  ``rpe_rmse_before`` / ``rpe_rmse_after`` (evo RPE translation over 1 s, on the aligned
+  trajectories), ``loops_proposed`` (candidates verified), ``loops_verified``, ``loops_accepted``,
+  ``false_loops_accepted``, ``lcd_precision`` / ``lcd_recall`` of the accepted loops against the GT
+  loop pairs (``--tolerance`` frames), ``path_length`` (GT, m) and ``interrupted``. Figures that need
+  GT are null without it.
 
-A frontend that raises on a frame costs only that frame: it is logged with the image path and
-counted lost. When the run stops early (Ctrl-C, an unreadable image with --strict), whatever was
-processed is still written before the error is re-raised.
-
-Loop closing is not wired into ``symbio run`` yet: every run is odometry only. ``--no-loops``
-says so explicitly (and keeps its meaning once loop closing lands); without it the run warns.
+A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
+failing object/loop detectors and verifiers cost one keyframe or candidate (counted). When the run
+stops early (Ctrl-C, an unreadable image with --strict), whatever was processed is written before
+the error is re-raised.
 
 Examples:
-  symbio run scene --no-loops --out run_vo                       # the mono-vo frontend
+  symbio run scene --out run                                     # mono-vo + symbiolcd2 + pycolmap + gtsam
+  symbio run scene --no-loops --out run_vo                       # odometry only
+  symbio run scene --detector vbow --set detector.threshold=0.1 --out run_vbow
   symbio run scene --frontend replay --set trajectory=scene/groundtruth.txt --no-loops --out run_gt
   symbio run kitti/sequences/06 --frontend replay --set trajectory=orb.txt --set format=kitti \\
       --no-loops --out run_orb
@@ -33,45 +44,122 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import csv
 import itertools
 import logging
 import time
 from collections import Counter
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from evo.core import metrics
 from evo.core.geometry import GeometryException
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
+from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
 from frontends.base import FRONTENDS, Frontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
+from frontends.config import load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
 from frontends.trajectory_io import write_trajectory
-from frontends.types import Frame, Keyframe
+from frontends.types import Frame
+from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
+from slam_backend.pipeline import LoopClosing, LoopClosingConfig, LoopRecord
+from slam_backend.posegraph import BACKENDS, BackendConfig
+from slam_backend.verify import VERIFIERS
 
 log = logging.getLogger(__name__)
 
 TRAJECTORY_FILE = "trajectory_tum.txt"
+ODOMETRY_FILE = "trajectory_odometry_tum.txt"
 KEYFRAMES_FILE = "keyframes_tum.txt"
+LOOPS_FILE = "loops.csv"
 METRICS_FILE = "metrics.json"
+OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE)
+SECTIONS = ("frontend", "detector", "object_detector", "verifier", "backend", "loop_closing")
+#: RPE is measured over this much time (s), a few keyframes at walking speed.
+RPE_DELTA_S = 1.0
+
+
+@dataclass(frozen=True)
+class Components:
+    """Names and settings of every part of the pipeline (``--config`` sections, ``--set``)."""
+
+    frontend: str = "mono-vo"
+    detector: str = "symbiolcd2"
+    #: Empty: the oracle on synthetic scenes (they carry GT objects), ssd-mobilenet elsewhere.
+    object_detector: str = ""
+    verifier: str = "pycolmap"
+    backend: str = "gtsam"
+    #: Per section: ``key=value`` overrides (from the YAML file first, then the command line).
+    overrides: dict[str, list[str]] = field(default_factory=dict)
+
+    def of(self, section: str) -> list[str]:
+        return self.overrides.get(section, [])
+
+
+def _flatten(mapping: dict[str, Any], prefix: str = "") -> list[str]:
+    items = []
+    for key, value in mapping.items():
+        if isinstance(value, dict):
+            items += _flatten(value, f"{prefix}{key}.")
+        else:
+            items.append(f"{prefix}{key}={yaml.safe_dump(value, default_flow_style=True).strip()}")
+            if items[-1].endswith("\n..."):
+                items[-1] = items[-1][: -len("\n...")]
+    return items
+
+
+def load_components(
+    config_path: Path | None, overrides: Sequence[str], names: dict[str, str | None]
+) -> Components:
+    """Components from a run YAML, ``--set`` overrides and the ``--frontend``/... name options."""
+    chosen: dict[str, str] = {}
+    per_section: dict[str, list[str]] = {section: [] for section in SECTIONS}
+    if config_path is not None:
+        mapping, _ = read_yaml_mapping(config_path)
+        if any(key in SECTIONS for key in mapping):
+            for key, value in mapping.items():
+                if key not in SECTIONS:
+                    raise ConfigError(f"{config_path}: unknown section {key!r} (expected one of {SECTIONS})")
+                if not isinstance(value, dict):
+                    raise ConfigError(f"{config_path}: section {key!r} must be a mapping")
+                value = dict(value)
+                if "name" in value:
+                    chosen[key] = str(value.pop("name"))
+                per_section[key] += _flatten(value)
+        else:  # the frontend's own config file
+            per_section["frontend"] += _flatten(mapping)
+    for item in overrides:
+        section, dot, rest = item.partition(".")
+        if dot and section in SECTIONS:
+            per_section[section].append(rest)
+        else:
+            per_section["frontend"].append(item)
+    for section, name in names.items():
+        if name is not None:
+            chosen[section] = name
+    known = {f.name for f in fields(Components)}
+    return Components(**{k: v for k, v in chosen.items() if k in known}, overrides=per_section)
 
 
 @dataclass
-class OdometryRun:
-    """What streaming frames through a frontend produced so far."""
+class PipelineRun:
+    """What streaming frames through the pipeline produced so far."""
 
     results: list[TrackResult] = field(default_factory=list)
     #: Position in ``results`` of each frame index (so backfilled results replace earlier ones).
     positions: dict[int, int] = field(default_factory=dict)
     frontend_failures: int = 0
     frontend_seconds: float = 0.0
+    total_seconds: float = 0.0
     interrupted: bool = False
 
     @property
@@ -87,7 +175,7 @@ class OdometryRun:
                 self.results[position] = late
 
 
-def track_frame(frontend: Frontend, frame: Frame, run: OdometryRun) -> TrackResult:
+def track_frame(frontend: Frontend, frame: Frame, run: PipelineRun) -> TrackResult:
     """The frontend's result for ``frame``; if it raises, the frame is lost (logged, counted)."""
     start = time.perf_counter()
     try:
@@ -106,9 +194,34 @@ def track_frame(frontend: Frontend, frame: Frame, run: OdometryRun) -> TrackResu
     return result
 
 
-def stream_frames(frames: Iterable[Frame], frontend: Frontend, run: OdometryRun) -> None:
+def stream_frames(
+    frames: Iterable[Frame], frontend: Frontend, loop_closing: LoopClosing, run: PipelineRun
+) -> None:
     for frame in frames:
-        run.add(track_frame(frontend, frame, run))
+        start = time.perf_counter()
+        result = track_frame(frontend, frame, run)
+        run.add(result)
+        loop_closing.add(result, frame)
+        run.total_seconds += time.perf_counter() - start
+
+
+def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopClosing:
+    """The loop-closing half for ``components``; None or ``--no-loops``: the backend chain only."""
+    c = components or Components()
+    backend = BACKENDS.load(c.backend)(load_config(BackendConfig, None, c.of("backend")))  # type: ignore[call-arg]
+    config = load_config(LoopClosingConfig, None, c.of("loop_closing"))
+    if components is None:
+        return LoopClosing(backend, config=config)
+    from eval.lcd_eval import default_object_detector
+
+    object_name = c.object_detector or default_object_detector(dataset)
+    return LoopClosing(
+        backend,
+        LOOP_DETECTORS.load(c.detector)(c.of("detector")),
+        OBJECT_DETECTORS.load(object_name)(c.of("object_detector")),
+        VERIFIERS.load(c.verifier)(dataset.camera, c.of("verifier")),
+        config,
+    )
 
 
 def run_odometry(
@@ -116,16 +229,20 @@ def run_odometry(
     frontend: Frontend,
     out_dir: Path,
     *,
+    loop_closing: LoopClosing | None = None,
     max_frames: int | None = None,
     progress: bool = True,
+    tolerance: int = 0,
 ) -> dict[str, Any]:
-    """Stream ``dataset`` through ``frontend``, write trajectories and metrics to ``out_dir``.
+    """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
+    the trajectories, loops and metrics to ``out_dir``; returns the figures of ``metrics.json``.
 
-    Returns the figures written to ``metrics.json``. If anything stops the run early (including
-    KeyboardInterrupt), what was processed is written first and the exception re-raised.
+    If anything stops the run early (including KeyboardInterrupt), what was processed is written
+    first and the exception re-raised.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
-    run = OdometryRun()
+    closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
+    run = PipelineRun()
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     try:
         with tqdm(
@@ -135,21 +252,35 @@ def run_odometry(
             unit="frame",
             desc=f"run {frontend.name}",
         ) as frames:
-            stream_frames(frames, frontend, run)
+            stream_frames(frames, frontend, closing, run)
     except BaseException:
         run.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
-        write_outputs(out_dir, dataset, frontend, run)
+        write_outputs(out_dir, dataset, frontend, closing, run, tolerance)
         raise
-    return write_outputs(out_dir, dataset, frontend, run)
+    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance)
 
 
-def write_outputs(out_dir: Path, dataset: Dataset, frontend: Frontend, run: OdometryRun) -> dict[str, Any]:
-    keyframes = frontend.keyframes()
-    tracked = [(r.pose, r.timestamp) for r in run.results if r.pose is not None]
-    write_poses(out_dir / TRAJECTORY_FILE, [pose for pose, _ in tracked], [stamp for _, stamp in tracked])
-    write_poses(out_dir / KEYFRAMES_FILE, [k.pose for k in keyframes], [k.timestamp for k in keyframes])
-    figures = run_figures(dataset, frontend, run, keyframes)
+def write_outputs(
+    out_dir: Path,
+    dataset: Dataset,
+    frontend: Frontend,
+    closing: LoopClosing,
+    run: PipelineRun,
+    tolerance: int,
+) -> dict[str, Any]:
+    final = closing.frame_poses(corrected=True)
+    odometry = closing.frame_poses(corrected=False)
+    write_poses(out_dir / TRAJECTORY_FILE, [p for _, _, p in final], [t for _, t, _ in final])
+    write_poses(out_dir / ODOMETRY_FILE, [p for _, _, p in odometry], [t for _, t, _ in odometry])
+    keyframes = closing.keyframes
+    corrected = closing.corrected_keyframe_poses()
+    write_poses(
+        out_dir / KEYFRAMES_FILE, [corrected[k.id] for k in keyframes], [k.timestamp for k in keyframes]
+    )
+    loops = closing.loops()
+    write_loops_csv(out_dir / LOOPS_FILE, loops)
+    figures = run_figures(dataset, frontend, closing, run, final, odometry, loops, tolerance)
     write_json(out_dir / METRICS_FILE, figures)
     return figures
 
@@ -162,17 +293,50 @@ def write_poses(path: Path, poses: list[np.ndarray], timestamps: list[float]) ->
     write_trajectory(path, trajectory, "tum")
 
 
+def write_loops_csv(path: Path, loops: list[LoopRecord]) -> None:
+    columns = [
+        "query", "match", "query_frame", "match_frame", "score", "verified", "inliers", "accepted",
+        "scale", "reason",
+    ]  # fmt: skip
+    with path.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for r in loops:
+            writer.writerow(
+                [
+                    r.query, r.match, r.query_frame, r.match_frame, f"{r.score:.6g}", int(r.verified),
+                    r.inliers, int(r.accepted), f"{r.scale:.6g}", r.reason,
+                ]
+            )  # fmt: skip
+
+
 def run_figures(
-    dataset: Dataset, frontend: Frontend, run: OdometryRun, keyframes: list[Keyframe]
+    dataset: Dataset,
+    frontend: Frontend,
+    closing: LoopClosing,
+    run: PipelineRun,
+    final: list[tuple[int, float, np.ndarray]],
+    odometry: list[tuple[int, float, np.ndarray]],
+    loops: list[LoopRecord],
+    tolerance: int,
 ) -> dict[str, Any]:
     tracked = run.tracked
+    keyframes = closing.keyframes
     segments = {r.segment for r in tracked} | {k.segment for k in keyframes}
-    ate, ate_segment, ate_frames = odometry_ate(dataset, tracked)
-    return {
+    per_segment = Counter(r.segment for r in tracked)
+    segment = min(per_segment, key=lambda s: (-per_segment[s], s)) if per_segment else None
+    in_segment = {r.frame_index for r in tracked if r.segment == segment}
+    before = trajectory_errors(dataset, [p for p in odometry if p[0] in in_segment])
+    after = trajectory_errors(dataset, [p for p in final if p[0] in in_segment])
+    after_all = trajectory_errors(dataset, final)
+    counters = closing.counters
+    frames = max(len(run.results), 1)
+    figures: dict[str, Any] = {
         "dataset": str(dataset.root),
         "format": dataset.format_name,
         "frontend": frontend.name,
-        "loop_closing": False,
+        "loop_closing": closing.detector is not None,
+        "detector": closing.detector.name if closing.detector is not None else None,
         "frames": len(run.results),
         "frames_tracked": len(tracked),
         "tracking_lost": sum(r.state == "lost" for r in run.results),
@@ -180,44 +344,73 @@ def run_figures(
         "images_skipped": len(dataset.skipped),
         "keyframes": len(keyframes),
         "segments": len(segments),
-        "fps": len(run.results) / run.frontend_seconds if run.frontend_seconds > 0 else None,
-        "ate_rmse_before": ate,
-        "ate_segment": ate_segment,
-        "ate_frames": ate_frames,
+        "fps": len(run.results) / run.total_seconds if run.total_seconds > 0 else None,
+        "ms_per_frame_frontend": 1e3 * run.frontend_seconds / frames,
+        **{f"ms_per_frame_{k}": 1e3 * v / frames for k, v in sorted(counters.seconds.items())},
+        "ate_rmse_before": before[0],
+        "ate_rmse_after": after[0],
+        "ate_rmse_after_all": after_all[0],
+        "rpe_rmse_before": before[1],
+        "rpe_rmse_after": after[1],
+        "ate_segment": segment if before[0] is not None else None,
+        "ate_frames": before[2],
         "path_length": gt_path_length(dataset, run.results),
+        "loops_proposed": len(loops),
+        "loops_verified": sum(r.verified for r in loops),
+        "loops_accepted": sum(r.accepted for r in loops),
+        "object_detector_failures": counters.object_detector_failures,
+        "loop_detector_failures": counters.loop_detector_failures,
+        "verifier_failures": counters.verifier_failures,
         "interrupted": run.interrupted,
+    }
+    figures.update(loop_truth(dataset, loops, keyframes, tolerance))
+    return figures
+
+
+def loop_truth(
+    dataset: Dataset, loops: list[LoopRecord], keyframes: list[Any], tolerance: int
+) -> dict[str, Any]:
+    """False accepted loops, and precision/recall of the accepted loops against the GT loop pairs.
+
+    Recall counts the query keyframes that had a GT loop to an earlier keyframe (within
+    ``tolerance`` frames) and got an accepted true loop."""
+    pairs, _ = dataset.loop_pairs()
+    if pairs is None:
+        return {
+            "false_loops_accepted": None,
+            "lcd_precision": None,
+            "lcd_recall": None,
+            "gt_loop_queries": None,
+        }
+    references = gt_references(pairs)
+    accepted = [r for r in loops if r.accepted]
+    true = [r for r in accepted if is_true_match(r.match_frame, references.get(r.query_frame), tolerance)]
+    frames = [k.frame_index for k in keyframes]
+    reachable = {
+        f for i, f in enumerate(frames) if has_reachable_loop(references.get(f), frames[:i], tolerance)
+    }
+    found = {r.query_frame for r in true} & reachable
+    return {
+        "false_loops_accepted": len(accepted) - len(true),
+        "lcd_precision": len(true) / len(accepted) if accepted else None,
+        "lcd_recall": len(found) / len(reachable) if reachable else None,
+        "gt_loop_queries": len(reachable),
     }
 
 
-def odometry_ate(dataset: Dataset, tracked: list[TrackResult]) -> tuple[float | None, int | None, int]:
-    """evo APE (translation RMSE) after Sim(3) alignment, of the segment with most tracked frames.
-
-    Returns (ATE or None, the segment aligned or None, frames used). Frames are matched to the GT
-    by index; poses of different segments share no frame, so only one segment can be aligned.
-    """
-    if dataset.gt_poses is None or not tracked:
+def trajectory_errors(
+    dataset: Dataset, poses: list[tuple[int, float, np.ndarray]]
+) -> tuple[float | None, float | None, int]:
+    """(APE translation RMSE, RPE translation RMSE over ``RPE_DELTA_S``, frames) after Sim(3)
+    Umeyama alignment to the GT (evo); None without GT or with fewer than 3 posed GT frames."""
+    if dataset.gt_poses is None:
         return None, None, 0
-    per_segment = Counter(r.segment for r in tracked)
-    segment = min(per_segment, key=lambda s: (-per_segment[s], s))
-    if len(per_segment) > 1:
-        log.info(
-            "%d map segments; ATE over segment %d (%d of %d tracked frames)",
-            len(per_segment),
-            segment,
-            per_segment[segment],
-            len(tracked),
-        )
-    pairs = [
-        (r, dataset.gt_poses[r.frame_index])
-        for r in tracked
-        if r.segment == segment and np.isfinite(dataset.gt_poses[r.frame_index]).all()
-    ]
+    pairs = [(t, p, dataset.gt_poses[i]) for i, t, p in poses if np.isfinite(dataset.gt_poses[i]).all()]
     if len(pairs) < 3:  # a similarity transform needs three non-collinear positions
-        log.warning("only %d tracked frames have ground truth; no ATE", len(pairs))
         return None, None, len(pairs)
-    stamps = np.array([r.timestamp for r, _ in pairs])
-    reference = PoseTrajectory3D(poses_se3=[gt for _, gt in pairs], timestamps=stamps)
-    estimate = PoseTrajectory3D(poses_se3=[r.pose for r, _ in pairs], timestamps=stamps)
+    stamps = np.array([t for t, _, _ in pairs])
+    reference = PoseTrajectory3D(poses_se3=[g for _, _, g in pairs], timestamps=stamps)
+    estimate = PoseTrajectory3D(poses_se3=[p for _, p, _ in pairs], timestamps=stamps)
     try:
         estimate.align(reference, correct_scale=True)
     except GeometryException as exc:  # e.g. a frontend that never moved: Umeyama is degenerate
@@ -225,7 +418,15 @@ def odometry_ate(dataset: Dataset, tracked: list[TrackResult]) -> tuple[float | 
         return None, None, len(pairs)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((reference, estimate))
-    return float(ape.get_statistic(metrics.StatisticsType.rmse)), segment, len(pairs)
+    ate = float(ape.get_statistic(metrics.StatisticsType.rmse))
+    rpe_value = None
+    rate = (len(stamps) - 1) / max(float(stamps[-1] - stamps[0]), 1e-9)
+    delta = max(1, round(RPE_DELTA_S * rate))
+    if len(pairs) > delta:
+        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta, metrics.Unit.frames, all_pairs=False)
+        rpe.process_data((reference, estimate))
+        rpe_value = float(rpe.get_statistic(metrics.StatisticsType.rmse))
+    return ate, rpe_value, len(pairs)
 
 
 def gt_path_length(dataset: Dataset, results: list[TrackResult]) -> float | None:
@@ -241,31 +442,49 @@ def gt_path_length(dataset: Dataset, results: list[TrackResult]) -> float | None
 def add_parser(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "run",
-        help="run a frontend over a dataset: trajectories and odometry metrics (loop closing: not yet)",
+        help="run the SLAM pipeline over a dataset: trajectories, loops, ATE/RPE before and after",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_dataset_arguments(parser)
+    defaults = Components()
     parser.add_argument(
         "--frontend",
-        default="mono-vo",
-        help=f"frontend name ({', '.join(FRONTENDS.names())}; default mono-vo). "
+        help=f"frontend ({', '.join(FRONTENDS.names())}; default {defaults.frontend}). "
         "replay takes its poses from a file: --set trajectory=FILE [--set format=kitti]",
     )
-    parser.add_argument("--config", type=Path, help="YAML of the frontend's config")
+    parser.add_argument(
+        "--detector", help=f"loop detector ({', '.join(LOOP_DETECTORS.names())}; default {defaults.detector})"
+    )
+    parser.add_argument(
+        "--object-detector",
+        help=f"object detector ({', '.join(OBJECT_DETECTORS.names())}; default: oracle on synthetic "
+        "scenes, ssd-mobilenet elsewhere)",
+    )
+    parser.add_argument("--verifier", help=f"verifier ({', '.join(VERIFIERS.names())}; default pycolmap)")
+    parser.add_argument(
+        "--backend", help=f"pose-graph backend ({', '.join(BACKENDS.names())}; default gtsam)"
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help=f"run YAML with sections {', '.join(SECTIONS)} (each may set name:), or a frontend config",
+    )
     parser.add_argument(
         "--set",
         dest="overrides",
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override a frontend config value (dotted keys for nested configs)",
+        help="override a setting: SECTION.key=value for " + ", ".join(SECTIONS[1:]) + "; other keys "
+        "(or frontend.key) go to the frontend",
     )
+    parser.add_argument("--no-loops", action="store_true", help="odometry only, no loop closing")
     parser.add_argument(
-        "--no-loops",
-        action="store_true",
-        help="odometry only, no loop closing. Loop closing is not wired in yet, so runs are odometry "
-        "only either way; without this flag the run says so with a warning",
+        "--tolerance",
+        type=int,
+        default=3,
+        help="frames an accepted loop may be off a GT reference (default 3)",
     )
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N frames")
@@ -277,17 +496,30 @@ def add_parser(subparsers: Any) -> None:
 def run_command(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames {args.max_frames}: must be at least 1")
-    if not args.no_loops:
-        log.warning("loop closing not wired yet; running odometry only (--no-loops silences this)")
+    names = {
+        "frontend": args.frontend,
+        "detector": args.detector,
+        "object_detector": args.object_detector,
+        "verifier": args.verifier,
+        "backend": args.backend,
+    }
+    components = load_components(args.config, args.overrides, names)
     dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
-    frontend = FRONTENDS.load(args.frontend)(dataset.camera, args.overrides, args.config)
+    frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
     for note in dataset.notes:
         print(f"note: {note}")
+    closing = build_loop_closing(dataset, None if args.no_loops else components)
     figures = run_odometry(
-        dataset, frontend, args.out, max_frames=args.max_frames, progress=not args.no_progress
+        dataset,
+        frontend,
+        args.out,
+        loop_closing=closing,
+        max_frames=args.max_frames,
+        progress=not args.no_progress,
+        tolerance=args.tolerance,
     )
     print(f"run {frontend.name} on {dataset.root} ({dataset.format_name})")
     print_figures(figures)
-    print(f"wrote {args.out / TRAJECTORY_FILE}, {args.out / KEYFRAMES_FILE}, {args.out / METRICS_FILE}")
+    print(f"wrote {', '.join(str(args.out / f) for f in OUTPUT_FILES)}")
     write_json(args.json, figures)
     return 0

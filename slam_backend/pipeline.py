@@ -1,0 +1,339 @@
+"""Loop closing: keyframes -> object detector -> loop detector -> verifier -> pose graph.
+
+``LoopClosing`` consumes what a frontend says about each frame (``TrackResult``, including the
+results it backfills) and keeps two trajectories of every posed frame:
+
+* **odometry**: keyframe poses chained from the odometry steps the backend receives (the step of a
+  keyframe is its pose in the previous keyframe's frame, read when it arrives, i.e. after the
+  frontend's bundle adjustment of the previous one), and each frame anchored to the newest keyframe
+  of its segment at the time it was posed (``anchor ∘ relative``);
+* **loop-closed**: the same frames anchored to the backend's current Sim(3) keyframe estimates.
+
+With no accepted loop the two coincide, so "the trajectory is unchanged" is a measurable claim.
+
+Per keyframe: objects (the object detector sees the keyframe's image; a failing detector costs the
+keyframe its objects, logged and counted), loop candidates (a failing detector costs the query its
+candidates), verification of the best ``max_verifications`` candidates at or above the detector's
+threshold (a raising verifier counts as a rejection with the error as reason), and one backend event
+with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
+the final decision; ``loops()`` reports the current decision of every candidate.
+
+A new map segment (the frontend could not relocalise) is linked to the previous keyframe by an
+identity step with a very loose covariance (``segment_link_*``): the map stays one graph, and a loop
+that reaches back across the gap pulls the segment into place.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from frontends.base import TrackResult
+from frontends.types import Frame, Keyframe
+from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
+from slam_backend.posegraph import PoseGraphBackend
+from slam_backend.verify import Verification, Verifier
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopClosingConfig:
+    #: Candidates (best first) verified per query keyframe ...
+    max_verifications: int = 2
+    #: ... among those scoring at least this fraction of the detector's own threshold. A detector's
+    #: threshold is set for precision on its own; here geometric verification and the backend's
+    #: outlier rejection guard precision, so weaker candidates are worth a check (a verification
+    #: costs ~40 ms; at most ``max_verifications`` per keyframe).
+    proposal_ratio: float = 0.5
+    #: Sigmas of the step that links a new map segment to the previous keyframe: rotation (rad),
+    #: translation (map units) and log-scale. Loose enough that any loop overrides it.
+    segment_link_rotation_sigma: float = 1.0
+    segment_link_translation_sigma: float = 100.0
+    segment_link_log_scale_sigma: float = 1.0
+    #: Odometry sigmas for keyframes that come without a covariance (e.g. the replay frontend):
+    #: rotation (rad), translation (fraction of the step length) and log-scale.
+    default_rotation_sigma: float = 0.005
+    default_translation_sigma: float = 0.02
+    default_log_scale_sigma: float = 0.01
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """One verified candidate and what became of it."""
+
+    query: int
+    match: int
+    query_frame: int
+    match_frame: int
+    score: float
+    verified: bool
+    inliers: int
+    accepted: bool
+    reason: str
+    scale: float = float("nan")
+    loop_id: int | None = None
+
+
+@dataclass
+class _PosedFrame:
+    frame_index: int
+    timestamp: float
+    anchor: int
+    #: The frame's camera-to-world pose in its anchor keyframe's camera frame.
+    relative: np.ndarray
+
+
+@dataclass
+class LoopClosingCounters:
+    object_detector_failures: int = 0
+    loop_detector_failures: int = 0
+    verifier_failures: int = 0
+    keyframes_with_objects: int = 0
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+
+
+def _sigma_covariance(rotation: float, translation: float, log_scale: float) -> np.ndarray:
+    return np.diag(np.r_[np.full(3, rotation), np.full(3, translation), log_scale] ** 2)
+
+
+def _without_scale(matrix: np.ndarray) -> np.ndarray:
+    pose = np.array(matrix, dtype=np.float64)
+    pose[:3, :3] /= float(np.cbrt(np.linalg.det(pose[:3, :3])))
+    return pose
+
+
+class LoopClosing:
+    """The loop-closing half of the SLAM pipeline (the frontend is the other half)."""
+
+    def __init__(
+        self,
+        backend: PoseGraphBackend,
+        detector: LoopDetector | None = None,
+        objects: ObjectDetector | None = None,
+        verifier: Verifier | None = None,
+        config: LoopClosingConfig = LoopClosingConfig(),
+        on_loop: Callable[[LoopRecord], None] | None = None,
+    ) -> None:
+        """``detector``/``verifier`` None: odometry only (the pose graph holds just the chain)."""
+        self.backend = backend
+        self.detector = detector
+        self.objects = objects
+        self.verifier = verifier
+        self.config = config
+        self.on_loop = on_loop
+        self.counters = LoopClosingCounters()
+        self._keyframes: dict[int, Keyframe] = {}
+        self._odometry_pose: dict[int, np.ndarray] = {}
+        self._frames: dict[int, _PosedFrame] = {}
+        self._latest_keyframe: dict[int, int] = {}
+        self._paths: dict[int, str | None] = {}
+        self._records: list[LoopRecord] = []
+        self._previous: Keyframe | None = None
+
+    # -- input -------------------------------------------------------------------------------------
+
+    def add(self, result: TrackResult, frame: Frame | None = None) -> list[LoopRecord]:
+        """Take one frontend result (and the results it backfills); returns this call's loop records."""
+        if frame is not None:
+            self._paths[frame.index] = frame.path
+        records: list[LoopRecord] = []
+        for item in sorted(result.backfilled, key=lambda r: r.frame_index):
+            records += self._add_one(item)
+        records += self._add_one(result)
+        return records
+
+    def _add_one(self, result: TrackResult) -> list[LoopRecord]:
+        records = []
+        if result.keyframe is not None and result.keyframe.id not in self._keyframes:
+            records = self._add_keyframe(result.keyframe)
+        if result.pose is not None:
+            anchor_id = self._latest_keyframe.get(result.segment)
+            if anchor_id is None:  # no keyframe in this segment yet: nothing to anchor to
+                return records
+            anchor = self._keyframes[anchor_id]
+            relative = np.linalg.inv(anchor.pose) @ result.pose
+            self._frames[result.frame_index] = _PosedFrame(
+                result.frame_index, result.timestamp, anchor_id, relative
+            )
+        return records
+
+    def _add_keyframe(self, keyframe: Keyframe) -> list[LoopRecord]:
+        start = time.perf_counter()
+        previous = self._previous
+        if previous is None:
+            step, covariance = keyframe.pose.copy(), _sigma_covariance(1e-3, 1e-3, 1e-3)
+        elif previous.segment != keyframe.segment:
+            c = self.config
+            step = np.eye(4)
+            covariance = _sigma_covariance(
+                c.segment_link_rotation_sigma,
+                c.segment_link_translation_sigma,
+                c.segment_link_log_scale_sigma,
+            )
+        else:
+            step = np.linalg.inv(previous.pose) @ keyframe.pose
+            covariance = (
+                keyframe.odometry_covariance
+                if keyframe.odometry_covariance is not None
+                else self._default_covariance(step)
+            )
+        self.backend.add_keyframe(keyframe.id, step, covariance)
+        self._odometry_pose[keyframe.id] = (
+            step if previous is None else self._odometry_pose[previous.id] @ step
+        )
+        self._keyframes[keyframe.id] = keyframe
+        self._latest_keyframe[keyframe.segment] = keyframe.id
+        self._previous = keyframe
+        self.counters.seconds["backend"] += time.perf_counter() - start
+        if self.detector is None:
+            return []
+        keyframe = self._with_objects(keyframe)
+        return self._close_loops(keyframe)
+
+    def _default_covariance(self, step: np.ndarray) -> np.ndarray:
+        c = self.config
+        length = max(float(np.linalg.norm(step[:3, 3])), 1e-6)
+        return _sigma_covariance(
+            c.default_rotation_sigma, c.default_translation_sigma * length, c.default_log_scale_sigma
+        )
+
+    def _with_objects(self, keyframe: Keyframe) -> Keyframe:
+        if self.objects is None or keyframe.image is None:
+            return keyframe
+        start = time.perf_counter()
+        frame = Frame(
+            keyframe.frame_index, keyframe.timestamp, keyframe.image, self._paths.get(keyframe.frame_index)
+        )
+        try:
+            found = tuple(self.objects.detect(keyframe.image, frame))
+        except Exception as exc:  # plugin boundary: a failing detector costs this keyframe its objects
+            self.counters.object_detector_failures += 1
+            log.warning("object detector %s failed on keyframe %d: %r", self.objects.name, keyframe.id, exc)
+            found = ()
+        self.counters.seconds["objects"] += time.perf_counter() - start
+        self.counters.keyframes_with_objects += bool(found)
+        # The frontend's keyframe object stays the frontend's; the detector gets a copy with objects.
+        return replace(keyframe, objects=found)
+
+    def _close_loops(self, keyframe: Keyframe) -> list[LoopRecord]:
+        assert self.detector is not None
+        start = time.perf_counter()
+        try:
+            candidates = self.detector.add(keyframe)
+        except Exception as exc:  # plugin boundary, like the object detector
+            self.counters.loop_detector_failures += 1
+            log.warning("loop detector %s failed on keyframe %d: %r", self.detector.name, keyframe.id, exc)
+            candidates = []
+        self.counters.seconds["loop_detector"] += time.perf_counter() - start
+        threshold = self.config.proposal_ratio * self.detector.threshold
+        chosen = [c for c in candidates if c.score >= threshold and c.match in self._keyframes]
+        chosen = chosen[: self.config.max_verifications]
+        if not chosen:
+            return []
+        verifications = [self._verify(keyframe, candidate) for candidate in chosen]
+        start = time.perf_counter()
+        verified = [
+            (c, v)
+            for c, v in zip(chosen, verifications, strict=True)
+            if v.verified and v.relative is not None and v.covariance is not None
+        ]
+        loops: list[tuple[int, int, np.ndarray, np.ndarray, Mapping[str, Any] | None]] = [
+            (c.match, c.query, v.relative, v.covariance, {"score": float(c.score), "inliers": v.inliers})
+            for c, v in verified
+            if v.relative is not None and v.covariance is not None
+        ]
+        decisions = self.backend.add_loops(loops) if loops else []
+        self.counters.seconds["backend"] += time.perf_counter() - start
+        loop_ids = {id(v): d.loop_id for (_, v), d in zip(verified, decisions, strict=True)}
+        accepted = {id(v): d.accepted for (_, v), d in zip(verified, decisions, strict=True)}
+        records = []
+        for candidate, verification in zip(chosen, verifications, strict=True):
+            decision_reason = "" if accepted.get(id(verification), False) else "rejected by the backend"
+            record = LoopRecord(
+                candidate.query,
+                candidate.match,
+                self._keyframes[candidate.query].frame_index,
+                self._keyframes[candidate.match].frame_index,
+                float(candidate.score),
+                verification.verified,
+                verification.inliers,
+                accepted.get(id(verification), False),
+                verification.reason or decision_reason,
+                verification.scale,
+                loop_ids.get(id(verification)),
+            )
+            records.append(record)
+            if self.on_loop is not None:
+                self.on_loop(record)
+        self._records += records
+        return records
+
+    def _verify(self, keyframe: Keyframe, candidate: LoopCandidate) -> Verification:
+        if self.verifier is None:
+            return Verification(candidate.query, candidate.match, False, "no verifier")
+        start = time.perf_counter()
+        try:
+            return self.verifier.verify(keyframe, self._keyframes[candidate.match])
+        except Exception as exc:  # plugin boundary: a raising verifier rejects this candidate only
+            self.counters.verifier_failures += 1
+            log.warning(
+                "verifier %s failed on %d -> %d: %r",
+                self.verifier.name,
+                candidate.query,
+                candidate.match,
+                exc,
+            )
+            return Verification(candidate.query, candidate.match, False, f"verifier error: {exc!r}")
+        finally:
+            self.counters.seconds["verifier"] += time.perf_counter() - start
+
+    # -- output ------------------------------------------------------------------------------------
+
+    def loops(self) -> list[LoopRecord]:
+        """Every verified candidate with the backend's current decision (PCM may revise earlier ones)."""
+        decisions = self.backend.decisions()
+        return [
+            replace(
+                r,
+                accepted=decisions[r.loop_id].accepted,
+                reason=r.reason
+                if r.reason != "" or decisions[r.loop_id].accepted
+                else "rejected by the backend",
+            )
+            if r.loop_id is not None
+            else r
+            for r in self._records
+        ]
+
+    @property
+    def keyframes(self) -> list[Keyframe]:
+        return [self._keyframes[k] for k in sorted(self._keyframes)]
+
+    def odometry_keyframe_poses(self) -> dict[int, np.ndarray]:
+        return dict(self._odometry_pose)
+
+    def corrected_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """The backend's keyframe estimates as camera-to-world SE(3) (scale taken out of the rotation)."""
+        return {k: _without_scale(m) for k, m in self._sim3_estimates().items()}
+
+    def _sim3_estimates(self) -> dict[int, np.ndarray]:
+        start = time.perf_counter()
+        estimates = self.backend.estimate() if self._keyframes else {}
+        self.counters.seconds["backend"] += time.perf_counter() - start
+        return estimates
+
+    def frame_poses(self, corrected: bool) -> list[tuple[int, float, np.ndarray]]:
+        """(frame index, timestamp, camera-to-world pose) of every posed frame, in frame order."""
+        anchors = self._sim3_estimates() if corrected else self._odometry_pose
+        poses = []
+        for index in sorted(self._frames):
+            posed = self._frames[index]
+            poses.append((index, posed.timestamp, _without_scale(anchors[posed.anchor] @ posed.relative)))
+        return poses
