@@ -62,9 +62,10 @@ from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
+from eval.report import REPORT_FILE, write_plots, write_report
 from frontends.base import FRONTENDS, Frontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
-from frontends.config import load_config, read_yaml_mapping
+from frontends.config import config_to_dict, load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
@@ -82,7 +83,7 @@ ODOMETRY_FILE = "trajectory_odometry_tum.txt"
 KEYFRAMES_FILE = "keyframes_tum.txt"
 LOOPS_FILE = "loops.csv"
 METRICS_FILE = "metrics.json"
-OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE)
+OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE, REPORT_FILE)
 SECTIONS = ("frontend", "detector", "object_detector", "verifier", "backend", "loop_closing")
 #: RPE is measured over this much time (s), a few keyframes at walking speed.
 RPE_DELTA_S = 1.0
@@ -233,6 +234,7 @@ def run_odometry(
     max_frames: int | None = None,
     progress: bool = True,
     tolerance: int = 0,
+    config: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
     the trajectories, loops and metrics to ``out_dir``; returns the figures of ``metrics.json``.
@@ -256,9 +258,9 @@ def run_odometry(
     except BaseException:
         run.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
-        write_outputs(out_dir, dataset, frontend, closing, run, tolerance)
+        write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {})
         raise
-    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance)
+    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {})
 
 
 def write_outputs(
@@ -268,6 +270,7 @@ def write_outputs(
     closing: LoopClosing,
     run: PipelineRun,
     tolerance: int,
+    config: dict[str, Any],
 ) -> dict[str, Any]:
     final = closing.frame_poses(corrected=True)
     odometry = closing.frame_poses(corrected=False)
@@ -282,6 +285,8 @@ def write_outputs(
     write_loops_csv(out_dir / LOOPS_FILE, loops)
     figures = run_figures(dataset, frontend, closing, run, final, odometry, loops, tolerance)
     write_json(out_dir / METRICS_FILE, figures)
+    images = write_plots(out_dir, dataset, odometry, final, loops, {k.id: k.frame_index for k in keyframes})
+    write_report(out_dir, figures, config, images, loops)
     return figures
 
 
@@ -493,6 +498,20 @@ def add_parser(subparsers: Any) -> None:
     parser.set_defaults(handler=run_command)
 
 
+def describe(components: Components, closing: LoopClosing, args: argparse.Namespace) -> dict[str, Any]:
+    """The run's configuration as the report shows it: component names, settings, options."""
+    return {
+        "dataset": str(args.path),
+        "no_loops": args.no_loops,
+        "tolerance": args.tolerance,
+        "components": {
+            f.name: getattr(components, f.name) for f in fields(Components) if f.name != "overrides"
+        },
+        "overrides": components.overrides,
+        "loop_closing": config_to_dict(closing.config),
+    }
+
+
 def run_command(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames {args.max_frames}: must be at least 1")
@@ -517,6 +536,7 @@ def run_command(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         progress=not args.no_progress,
         tolerance=args.tolerance,
+        config=describe(components, closing, args),
     )
     print(f"run {frontend.name} on {dataset.root} ({dataset.format_name})")
     print_figures(figures)

@@ -62,6 +62,14 @@ class LoopClosingConfig:
     default_rotation_sigma: float = 0.005
     default_translation_sigma: float = 0.02
     default_log_scale_sigma: float = 0.01
+    #: Added to every odometry covariance (as variances): rotation (rad), translation (fraction of
+    #: the keyframe's median map-point depth, the map's natural unit) and log-scale. A frontend's
+    #: sigmas relative to the step length vanish when the camera barely moves (or the monocular
+    #: scale shrinks), which makes the information matrix ill-conditioned and iSAM2's
+    #: factorisation fail; the floors keep every step a few orders of magnitude from singular.
+    floor_rotation_sigma: float = 1e-4
+    floor_translation_sigma: float = 1e-3
+    floor_log_scale_sigma: float = 1e-3
 
 
 @dataclass(frozen=True)
@@ -183,7 +191,7 @@ class LoopClosing:
                 keyframe.odometry_covariance
                 if keyframe.odometry_covariance is not None
                 else self._default_covariance(step)
-            )
+            ) + self._floor(keyframe)
         self.backend.add_keyframe(keyframe.id, step, covariance)
         self._odometry_pose[keyframe.id] = (
             step if previous is None else self._odometry_pose[previous.id] @ step
@@ -196,6 +204,18 @@ class LoopClosing:
             return []
         keyframe = self._with_objects(keyframe)
         return self._close_loops(keyframe)
+
+    def _floor(self, keyframe: Keyframe) -> np.ndarray:
+        c = self.config
+        depth = 1.0
+        if keyframe.points3d is not None:
+            depths = keyframe.points3d[:, 2]
+            depths = depths[np.isfinite(depths) & (depths > 0)]
+            if len(depths):
+                depth = float(np.median(depths))
+        return _sigma_covariance(
+            c.floor_rotation_sigma, c.floor_translation_sigma * depth, c.floor_log_scale_sigma
+        )
 
     def _default_covariance(self, step: np.ndarray) -> np.ndarray:
         c = self.config
