@@ -1,0 +1,264 @@
+"""Loop closing end to end: detector -> verifier -> Sim(3) pose graph, on rendered keyframes.
+
+The keyframes come straight from the synthetic renderer (every 6th frame of a 20 s 640x480 scene),
+with exact map points from its depth buffer (``eval.synth_keyframes``) and GT objects with 30 %
+misses, and poses that drift like monocular odometry (a slow scale shrink and a yaw bias). So the
+detector, the pycolmap verifier and the GTSAM backend run on realistic images and geometry, while
+the trajectory error before loop closing is known and large. The full ``symbio run`` with the
+``mono-vo`` frontend is tested in ``test_symbio_run_*``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from evo.core import metrics
+from evo.core.trajectory import PoseTrajectory3D
+from scipy.spatial.transform import Rotation
+
+from eval.cli import main as symbio_main
+from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, load_components
+from eval.synth_keyframes import keyframe_with_depth, scene_camera
+from frontends.base import TrackResult
+from frontends.synth.render import RenderedFrame, SceneRenderer
+from frontends.synth.world import SynthConfig
+from frontends.trajectory_io import read_tum
+from frontends.types import DetectedObject, Frame, Keyframe
+from lcd.base import LoopCandidate
+from lcd.symbiolcd2 import create as create_symbiolcd2
+from slam_backend.pipeline import LoopClosing
+from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
+from slam_backend.verify import create as create_verifier
+
+KEYFRAME_EVERY = 6
+MISS_RATE = 0.3
+
+
+class RenderedObjects:
+    """GT objects of the rendered keyframes, each missed with probability 0.3 (seeded per frame)."""
+
+    name = "rendered-gt"
+
+    def __init__(self) -> None:
+        self.frames: dict[int, tuple[DetectedObject, ...]] = {}
+
+    def remember(self, rendered: RenderedFrame) -> None:
+        rng = np.random.default_rng([11, rendered.index])
+        self.frames[rendered.index] = tuple(
+            DetectedObject(o.label, 1.0, tuple(float(v) for v in o.box), instance=o.instance)
+            for o in rendered.objects
+            if not o.movable and rng.random() >= MISS_RATE and o.visible_fraction >= 0.3
+        )
+
+    def detect(self, image: np.ndarray, frame: Frame | None = None) -> list[DetectedObject]:
+        assert frame is not None
+        return list(self.frames[frame.index])
+
+
+def drifting_keyframes(trajectory: str, seed: int) -> Iterator[tuple[Keyframe, RenderedFrame, np.ndarray]]:
+    """(keyframe with drifted pose and scaled map points, rendered frame, GT pose)."""
+    renderer = SceneRenderer(SynthConfig(trajectory=trajectory, seed=seed))  # type: ignore[arg-type]
+    previous_gt = previous_drifted = None
+    for kf_id, index in enumerate(range(0, renderer.config.frames, KEYFRAME_EVERY)):
+        keyframe = keyframe_with_depth(renderer, index, kf_id)
+        rendered = renderer.frame(index)
+        gt = keyframe.pose.copy()
+        # Odometry: GT steps, scaled and rotated by the accumulated drift.
+        if previous_gt is None:
+            drifted = gt.copy()
+        else:
+            step = np.linalg.inv(previous_gt) @ gt
+            step[:3, 3] *= 0.997**kf_id
+            yaw = np.eye(4)
+            yaw[:3, :3] = Rotation.from_euler("y", 0.25, degrees=True).as_matrix()
+            drifted = previous_drifted @ step @ yaw
+        previous_gt, previous_drifted = gt, drifted
+        assert keyframe.points3d is not None
+        scaled = replace(
+            keyframe,
+            pose=drifted,
+            points3d=keyframe.points3d * 0.997**kf_id,
+            odometry_covariance=np.diag([1e-5] * 3 + [(0.02 * 0.1) ** 2] * 3 + [0.01**2]),
+        )
+        yield scaled, rendered, gt
+
+
+def close_loops(
+    trajectory: str, seed: int, detector: object | None = None
+) -> tuple[LoopClosing, list[np.ndarray], list[Keyframe]]:
+    renderer_camera = scene_camera(SceneRenderer(SynthConfig(trajectory=trajectory, seed=seed)))  # type: ignore[arg-type]
+    objects = RenderedObjects()
+    closing = LoopClosing(
+        GtsamPoseGraph(BackendConfig()),
+        detector if detector is not None else create_symbiolcd2(),  # type: ignore[arg-type]
+        objects,
+        create_verifier(renderer_camera),
+    )
+    gt_poses, keyframes = [], []
+    for keyframe, rendered, gt in drifting_keyframes(trajectory, seed):
+        objects.remember(rendered)
+        result = TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+        closing.add(result, Frame(keyframe.frame_index, keyframe.timestamp, rendered.image))
+        gt_poses.append(gt)
+        keyframes.append(keyframe)
+    return closing, gt_poses, keyframes
+
+
+def ate(poses: Sequence[np.ndarray], gt: Sequence[np.ndarray]) -> float:
+    stamps = np.arange(len(poses), dtype=np.float64)
+    estimate = PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps)
+    reference = PoseTrajectory3D(poses_se3=list(gt), timestamps=stamps)
+    estimate.align(reference, correct_scale=True)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((reference, estimate))
+    return float(ape.get_statistic(metrics.StatisticsType.rmse))
+
+
+@pytest.fixture(scope="module")
+def loop_run() -> tuple[LoopClosing, list[np.ndarray], list[Keyframe]]:
+    return close_loops("loop", 3)
+
+
+def test_a_revisit_is_found_verified_and_reduces_the_error(
+    loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
+) -> None:
+    closing, gt, _keyframes = loop_run
+    loops = closing.loops()
+    accepted = [r for r in loops if r.accepted]
+    assert len(accepted) >= 3
+    # Every accepted loop joins views of the same place: GT camera centres within 0.6 m.
+    for loop in accepted:
+        distance = np.linalg.norm(gt[loop.query][:3, 3] - gt[loop.match][:3, 3])
+        assert distance < 0.6, loop
+        # The verifier recovers the drifted scale between the two maps (0.997 per keyframe).
+        assert loop.scale == pytest.approx(0.997 ** (loop.match - loop.query), rel=0.05)
+    before = ate([p for _, _, p in closing.frame_poses(corrected=False)], gt)
+    after = ate([p for _, _, p in closing.frame_poses(corrected=True)], gt)
+    assert after < 0.5 * before, (before, after)
+
+
+class FalseLoops:
+    """A loop detector that proposes, with a high score, the keyframe half a lap before the query."""
+
+    name = "false-loops"
+    threshold = 0.5
+
+    def __init__(self, offset: int) -> None:
+        self.offset = offset
+        self.seen = 0
+
+    def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        self.seen += 1
+        if keyframe.id < self.offset:
+            return []
+        return [LoopCandidate(keyframe.id, keyframe.id - self.offset, 10.0, {"forced": 1.0})]
+
+
+def test_forced_false_candidates_are_rejected_and_leave_the_trajectory_unchanged() -> None:
+    # 100 keyframes per 1.4 laps: 35 keyframes back is half a lap, the other side of the room.
+    closing, _, _ = close_loops("loop", 3, FalseLoops(35))
+    loops = closing.loops()
+    assert len(loops) >= 60
+    assert not any(r.accepted for r in loops)
+    assert all(r.reason for r in loops)
+    odometry = np.array([p for _, _, p in closing.frame_poses(corrected=False)])
+    final = np.array([p for _, _, p in closing.frame_poses(corrected=True)])
+    np.testing.assert_allclose(final, odometry, atol=1e-6)
+
+
+def test_no_revisit_no_loop() -> None:
+    closing, _, _ = close_loops("none", 4)
+    assert not any(r.accepted for r in closing.loops())
+
+
+class Raising:
+    name = "raising"
+    threshold = 0.0
+
+    def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        raise RuntimeError("detector bug")
+
+    def detect(self, image: np.ndarray, frame: Frame | None = None) -> list[DetectedObject]:
+        raise RuntimeError("object detector bug")
+
+    def verify(self, query: Keyframe, match: Keyframe) -> None:
+        raise RuntimeError("verifier bug")
+
+
+def test_failing_plugins_cost_one_keyframe_each(
+    loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
+) -> None:
+    _, _, keyframes = loop_run
+    closing = LoopClosing(GtsamPoseGraph(BackendConfig()), Raising(), Raising())  # type: ignore[arg-type]
+    for keyframe in keyframes[:20]:
+        closing.add(
+            TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+        )
+    assert closing.counters.loop_detector_failures == 20
+    assert closing.counters.object_detector_failures == 20
+    assert len(closing.frame_poses(corrected=True)) == 20
+    verifying = LoopClosing(
+        GtsamPoseGraph(BackendConfig()),
+        FalseLoops(5),
+        None,
+        Raising(),  # type: ignore[arg-type]
+    )
+    for keyframe in keyframes[:10]:
+        verifying.add(
+            TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+        )
+    assert verifying.counters.verifier_failures == 5
+    assert all(not r.verified and "verifier bug" in r.reason for r in verifying.loops())
+
+
+# --- the command line ---------------------------------------------------------------------------------
+
+
+def test_run_config_sections_and_overrides(tmp_path: Path) -> None:
+    config = tmp_path / "run.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "frontend": {"name": "mono-vo", "orb": {"nfeatures": 1000}},
+                "detector": {"name": "vbow", "threshold": 0.2},
+                "backend": {"rejection": "pcm"},
+            }
+        )
+    )
+    components = load_components(
+        config, ["detector.threshold=0.3", "seed=4", "verifier.ratio=0.7"], {"backend": None}
+    )
+    assert components.frontend == "mono-vo" and components.detector == "vbow"
+    assert components.of("frontend") == ["orb.nfeatures=1000", "seed=4"]
+    assert components.of("detector") == ["threshold=0.2", "threshold=0.3"]
+    assert components.of("verifier") == ["ratio=0.7"]
+    assert components.of("backend") == ["rejection=pcm"]
+    plain = tmp_path / "frontend.yaml"
+    plain.write_text("orb:\n  nfeatures: 900\n")
+    assert load_components(plain, [], {}).of("frontend") == ["orb.nfeatures=900"]
+
+
+def test_symbio_run_writes_every_output(small_loop_scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    argv = ["run", str(small_loop_scene), "--max-frames", "200", "--no-progress", "--out", str(out)]
+    assert symbio_main(argv) == 0
+    figures = json.loads((out / METRICS_FILE).read_text())
+    assert figures["loop_closing"] is True and figures["detector"] == "symbiolcd2"
+    for key in ("ate_rmse_before", "ate_rmse_after", "rpe_rmse_before", "rpe_rmse_after", "fps"):
+        assert figures[key] is not None and np.isfinite(figures[key]), key
+    assert figures["false_loops_accepted"] == 0
+    final, odometry = read_tum(out / TRAJECTORY_FILE), read_tum(out / ODOMETRY_FILE)
+    assert final.num_poses == odometry.num_poses == figures["frames_tracked"]
+    with (out / LOOPS_FILE).open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == figures["loops_proposed"]
+    for name in ("report.html", "trajectory_top.png", "ape_over_time.png", "keyframes_tum.txt"):
+        assert (out / name).stat().st_size > 0, name
+    assert "Configuration" in (out / "report.html").read_text()
