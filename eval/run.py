@@ -63,7 +63,8 @@ from tqdm import tqdm
 
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
 from eval.report import REPORT_FILE, write_plots, write_report
-from frontends.base import FRONTENDS, Frontend, TrackResult
+from eval.viewer import RerunViewer
+from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import config_to_dict, load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
@@ -83,6 +84,7 @@ ODOMETRY_FILE = "trajectory_odometry_tum.txt"
 KEYFRAMES_FILE = "keyframes_tum.txt"
 LOOPS_FILE = "loops.csv"
 METRICS_FILE = "metrics.json"
+RRD_FILE = "run.rrd"
 OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE, REPORT_FILE)
 SECTIONS = ("frontend", "detector", "object_detector", "verifier", "backend", "loop_closing")
 #: RPE is measured over this much time (s), a few keyframes at walking speed.
@@ -196,7 +198,11 @@ def track_frame(frontend: Frontend, frame: Frame, run: PipelineRun) -> TrackResu
 
 
 def stream_frames(
-    frames: Iterable[Frame], frontend: Frontend, loop_closing: LoopClosing, run: PipelineRun
+    frames: Iterable[Frame],
+    frontend: Frontend,
+    loop_closing: LoopClosing,
+    run: PipelineRun,
+    viewer: RerunViewer | None = None,
 ) -> None:
     for frame in frames:
         start = time.perf_counter()
@@ -204,6 +210,16 @@ def stream_frames(
         run.add(result)
         loop_closing.add(result, frame)
         run.total_seconds += time.perf_counter() - start
+        if viewer is not None:
+            viewer.frame(frame, result)
+
+
+def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
+    """Keyframes (with objects and the detector's graph) and loops go to the viewer as they happen."""
+    closing.on_keyframe = viewer.keyframe
+    closing.on_loop = lambda record: viewer.loop(
+        record, closing.keyframe(record.query).pose, closing.keyframe(record.match).pose
+    )
 
 
 def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopClosing:
@@ -235,6 +251,7 @@ def run_odometry(
     progress: bool = True,
     tolerance: int = 0,
     config: dict[str, Any] | None = None,
+    viewer: RerunViewer | None = None,
 ) -> dict[str, Any]:
     """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
     the trajectories, loops and metrics to ``out_dir``; returns the figures of ``metrics.json``.
@@ -244,6 +261,10 @@ def run_odometry(
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
+    if closing.detector is not None and isinstance(frontend, CorrectableFrontend):
+        closing.on_correction = frontend.apply_correction
+    if viewer is not None:
+        attach_viewer(viewer, closing)
     run = PipelineRun()
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     try:
@@ -254,13 +275,13 @@ def run_odometry(
             unit="frame",
             desc=f"run {frontend.name}",
         ) as frames:
-            stream_frames(frames, frontend, closing, run)
+            stream_frames(frames, frontend, closing, run, viewer)
     except BaseException:
         run.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
-        write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {})
+        write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
         raise
-    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {})
+    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
 
 
 def write_outputs(
@@ -271,9 +292,13 @@ def write_outputs(
     run: PipelineRun,
     tolerance: int,
     config: dict[str, Any],
+    viewer: RerunViewer | None = None,
 ) -> dict[str, Any]:
     final = closing.frame_poses(corrected=True)
     odometry = closing.frame_poses(corrected=False)
+    if viewer is not None:
+        viewer.trajectories(final, odometry)
+        viewer.close()
     write_poses(out_dir / TRAJECTORY_FILE, [p for _, _, p in final], [t for _, t, _ in final])
     write_poses(out_dir / ODOMETRY_FILE, [p for _, _, p in odometry], [t for _, t, _ in odometry])
     keyframes = closing.keyframes
@@ -486,6 +511,13 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument("--no-loops", action="store_true", help="odometry only, no loop closing")
     parser.add_argument(
+        "--viewer",
+        choices=["rerun"],
+        help="log images, keypoints, objects, the three-tier graph, trajectories and loops to rerun: "
+        "DIR/run.rrd, or a running viewer with --viewer-connect (optional extra symbiolcd2[viewer])",
+    )
+    parser.add_argument("--viewer-connect", metavar="URL", help="gRPC URL of a running rerun viewer")
+    parser.add_argument(
         "--tolerance",
         type=int,
         default=3,
@@ -528,6 +560,11 @@ def run_command(args: argparse.Namespace) -> int:
     for note in dataset.notes:
         print(f"note: {note}")
     closing = build_loop_closing(dataset, None if args.no_loops else components)
+    viewer = (
+        RerunViewer(args.out / RRD_FILE, args.viewer_connect, camera=dataset.camera)
+        if args.viewer == "rerun"
+        else None
+    )
     figures = run_odometry(
         dataset,
         frontend,
@@ -537,6 +574,7 @@ def run_command(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         tolerance=args.tolerance,
         config=describe(components, closing, args),
+        viewer=viewer,
     )
     print(f"run {frontend.name} on {dataset.root} ({dataset.format_name})")
     print_figures(figures)

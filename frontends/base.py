@@ -12,7 +12,7 @@ camera intrinsics and ``--set key=value`` overrides / a YAML file.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -49,6 +49,17 @@ class Frontend(Protocol):
 
     def keyframes(self) -> list[Keyframe]:
         """All keyframes so far, with their latest (e.g. bundle-adjusted) poses."""
+        ...
+
+
+@runtime_checkable
+class CorrectableFrontend(Frontend, Protocol):
+    """A frontend that can continue from a loop-corrected map (``symbio run`` uses it when offered)."""
+
+    def apply_correction(self, poses: Mapping[int, np.ndarray]) -> None:
+        """Move keyframes to ``poses`` (camera-to-world Sim(3) ``[sR, t; 0, 1]`` by keyframe id, in
+        the frame of the map the frontend gave), with their map points and the current tracking
+        state, so that tracking continues in the corrected map instead of fighting the loop."""
         ...
 
 

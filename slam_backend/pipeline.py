@@ -128,19 +128,30 @@ class LoopClosing:
         verifier: Verifier | None = None,
         config: LoopClosingConfig = LoopClosingConfig(),
         on_loop: Callable[[LoopRecord], None] | None = None,
+        on_correction: Callable[[dict[int, np.ndarray]], None] | None = None,
+        on_keyframe: Callable[[Keyframe, Any], None] | None = None,
     ) -> None:
-        """``detector``/``verifier`` None: odometry only (the pose graph holds just the chain)."""
+        """``detector``/``verifier`` None: odometry only (the pose graph holds just the chain).
+
+        ``on_loop`` sees every verified candidate's record; ``on_correction`` gets the backend's
+        keyframe estimates (camera-to-world Sim(3), by keyframe id) after every event that accepted
+        a loop, so the frontend can move its map there and keep tracking in the corrected map;
+        ``on_keyframe`` gets each keyframe as the detector saw it (with objects) and the detector's
+        graph of it when the detector exposes one (``last_graph``, SymbioLCD2), e.g. for a viewer."""
         self.backend = backend
         self.detector = detector
         self.objects = objects
         self.verifier = verifier
         self.config = config
         self.on_loop = on_loop
+        self.on_correction = on_correction
+        self.on_keyframe = on_keyframe
         self.counters = LoopClosingCounters()
         self._keyframes: dict[int, Keyframe] = {}
         self._odometry_pose: dict[int, np.ndarray] = {}
         self._frames: dict[int, _PosedFrame] = {}
         self._latest_keyframe: dict[int, int] = {}
+        self._segment_frame: dict[int, np.ndarray] = {}
         self._paths: dict[int, str | None] = {}
         self._records: list[LoopRecord] = []
         self._previous: Keyframe | None = None
@@ -197,6 +208,11 @@ class LoopClosing:
             step if previous is None else self._odometry_pose[previous.id] @ step
         )
         self._keyframes[keyframe.id] = keyframe
+        if keyframe.segment not in self._latest_keyframe:
+            # Graph frame <- this segment's map frame: what corrections are converted back with.
+            self._segment_frame[keyframe.segment] = self._odometry_pose[keyframe.id] @ np.linalg.inv(
+                keyframe.pose
+            )
         self._latest_keyframe[keyframe.segment] = keyframe.id
         self._previous = keyframe
         self.counters.seconds["backend"] += time.perf_counter() - start
@@ -252,6 +268,8 @@ class LoopClosing:
             log.warning("loop detector %s failed on keyframe %d: %r", self.detector.name, keyframe.id, exc)
             candidates = []
         self.counters.seconds["loop_detector"] += time.perf_counter() - start
+        if self.on_keyframe is not None:
+            self.on_keyframe(keyframe, getattr(self.detector, "last_graph", None))
         threshold = self.config.proposal_ratio * self.detector.threshold
         chosen = [c for c in candidates if c.score >= threshold and c.match in self._keyframes]
         chosen = chosen[: self.config.max_verifications]
@@ -293,7 +311,15 @@ class LoopClosing:
             if self.on_loop is not None:
                 self.on_loop(record)
         self._records += records
+        if self.on_correction is not None and any(r.accepted for r in records):
+            self.on_correction(self._current_segment_estimates(keyframe.segment))
         return records
+
+    def _current_segment_estimates(self, segment: int) -> dict[int, np.ndarray]:
+        """The backend's estimates of the keyframes of ``segment``, in that segment's map frame."""
+        to_segment = np.linalg.inv(self._segment_frame[segment])
+        estimates = self._sim3_estimates()
+        return {k: to_segment @ estimates[k] for k, kf in self._keyframes.items() if kf.segment == segment}
 
     def _verify(self, keyframe: Keyframe, candidate: LoopCandidate) -> Verification:
         if self.verifier is None:
@@ -331,6 +357,9 @@ class LoopClosing:
             else r
             for r in self._records
         ]
+
+    def keyframe(self, keyframe_id: int) -> Keyframe:
+        return self._keyframes[keyframe_id]
 
     @property
     def keyframes(self) -> list[Keyframe]:

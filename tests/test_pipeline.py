@@ -262,3 +262,11 @@ def test_symbio_run_writes_every_output(small_loop_scene: Path, tmp_path: Path) 
     for name in ("report.html", "trajectory_top.png", "ape_over_time.png", "keyframes_tum.txt"):
         assert (out / name).stat().st_size > 0, name
     assert "Configuration" in (out / "report.html").read_text()
+
+
+def test_symbio_run_viewer_writes_a_recording(small_loop_scene: Path, tmp_path: Path) -> None:
+    pytest.importorskip("rerun")
+    out = tmp_path / "run"
+    argv = ["run", str(small_loop_scene), "--max-frames", "60", "--viewer", "rerun", "--no-progress"]
+    assert symbio_main([*argv, "--out", str(out)]) == 0
+    assert (out / "run.rrd").stat().st_size > 10_000
