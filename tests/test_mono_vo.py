@@ -13,12 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from eval.bench_frontend import evaluate
 from frontends.base import FRONTENDS, Frontend, TrackResult
 from frontends.datasets import open_dataset
 from frontends.mono_vo import MonoVoConfig, create
-from frontends.mono_vo.features import OrbExtractor
+from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.initializer import Initializer
 from frontends.types import CameraIntrinsics, Frame
 
@@ -110,6 +111,28 @@ def test_keyframe_contents(loop_frames: tuple[CameraIntrinsics, list[Frame]]) ->
         assert kf.odometry_covariance is not None and kf.odometry_covariance.shape == (7, 7)
         assert (np.linalg.eigvalsh(kf.odometry_covariance) > 0).all()
     np.testing.assert_allclose(keyframes[0].pose, np.eye(4), atol=1e-6)
+
+
+def test_projection_matching_respects_scale_and_rotation() -> None:
+    descriptors = np.zeros((3, 32), np.uint8)
+    descriptors[1, 0] = 0xFF
+    descriptors[2, :] = 0xFF
+    # Keypoint 0 carries the point's descriptor but at pyramid level 4; keypoint 1 is at level 1.
+    keypoints = Features(
+        np.array([[10.0, 10.0], [12.0, 10.0], [14.0, 10.0]], np.float32),
+        np.array([[10.0, 10.0], [12.0, 10.0], [14.0, 10.0]]),
+        descriptors,
+        np.array([4, 1, 0]),
+        np.zeros(3),
+    )
+    point_idx, keypoint_idx = match_in_radius(
+        np.array([[10.0, 10.0]]), np.zeros((1, 32), np.uint8), np.array([0]),
+        cKDTree(keypoints.points), keypoints, 5.0, 80, 0.9,
+    )  # fmt: skip
+    assert point_idx.tolist() == [0] and keypoint_idx.tolist() == [1]
+    # 20 matches agree on a 5 deg roll; two stray ones are rejected.
+    differences = np.r_[np.full(20, 5.0), 100.0, -150.0]
+    assert consistent_rotation(differences, 30, 0.1).tolist() == [True] * 20 + [False, False]
 
 
 def test_black_frames_are_lost_without_error(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:

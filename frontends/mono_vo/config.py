@@ -69,6 +69,15 @@ class TrackingSettings:
     #: Hamming distance of an accepted projection match, and Lowe's ratio between the best two.
     max_hamming: int = 80
     ratio: float = 0.9
+    #: A point is searched for only when the camera sees it within this angle of its mean viewing
+    #: direction (ORB-SLAM: 60 deg) and within ``distance_margin`` of its scale-invariance range
+    #: (ORB-SLAM: 0.8x the nearest, 1.2x the farthest distance).
+    max_view_angle_deg: float = 60.0
+    distance_margin: float = 1.2
+    #: Orientation histogram of the matches (ORB-SLAM: 30 bins; the second and third most popular
+    #: bins count with 10 % of the first's matches).
+    rotation_bins: int = 30
+    rotation_min_share: float = 0.1
     #: PnP RANSAC reprojection threshold (px) and the inlier threshold of the refinement.
     pnp_threshold: float = 3.0
     inlier_threshold: float = 2.45
@@ -88,8 +97,14 @@ class KeyframeSettings:
     #: ... or this much time passed since the last keyframe (s), and never sooner than min_interval.
     max_interval: float = 0.5
     min_interval: float = 0.0
-    #: Earlier keyframes the new keyframe triangulates fresh points with.
+    #: Earlier keyframes the new keyframe triangulates fresh points with: the newest ones among the
+    #: last ``triangulation_window`` whose baseline is at least ``min_baseline_ratio`` of the new
+    #: keyframe's median depth (ORB-SLAM: 0.01). Keyframes that follow each other closely (a near
+    #: object sweeping through the view) would otherwise only pair up with parallax-free neighbours
+    #: and add no points at all.
     triangulation_neighbours: int = 2
+    triangulation_window: int = 8
+    min_baseline_ratio: float = 0.01
     #: Search radius (fraction of the image diagonal) around the median-depth prediction of a match.
     search_fraction: float = 0.05
     #: Lowe ratio and Hamming limit of the keyframe-to-keyframe matches for triangulation.

@@ -9,7 +9,10 @@ not only in the most textured patch. Descriptors are computed once, for all dete
 Matching: ``match_in_radius`` pairs projected map points with keypoints within a pixel radius (a
 k-d tree gives the candidate pairs in C), takes the Hamming distance of every candidate pair with
 ``np.bitwise_count`` on 64-bit words, and keeps the best pair per point when it passes the distance
-limit and Lowe's ratio test, one point per keypoint. No Python loop runs per point.
+limit and Lowe's ratio test, one point per keypoint. No Python loop runs per point. Only keypoints
+within one pyramid level of the point's predicted level are candidates (ORB-SLAM's scale
+prediction): in repetitive texture a wrong patch nearby often matches a descriptor well, but seldom
+at the right scale. ``consistent_rotation`` is ORB-SLAM's orientation histogram over the matches.
 """
 
 from __future__ import annotations
@@ -36,20 +39,24 @@ class Features:
     descriptors: np.ndarray
     #: (N,) int pyramid level.
     octaves: np.ndarray
+    #: (N,) float orientation (deg) of the descriptor's patch.
+    angles: np.ndarray
 
     def __len__(self) -> int:
         return len(self.keypoints)
 
     def subset(self, index: np.ndarray) -> Features:
         return Features(
-            self.keypoints[index], self.points[index], self.descriptors[index], self.octaves[index]
-        )
+            self.keypoints[index], self.points[index], self.descriptors[index], self.octaves[index],
+            self.angles[index],
+        )  # fmt: skip
 
 
 def empty_features() -> Features:
     return Features(
-        np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
-    )
+        np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros((0, 32), np.uint8),
+        np.zeros(0, np.int64), np.zeros(0),
+    )  # fmt: skip
 
 
 class OrbExtractor:
@@ -74,12 +81,15 @@ class OrbExtractor:
         xy = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
         response = np.array([k.response for k in keypoints], dtype=np.float64)
         octaves = np.array([k.octave for k in keypoints], dtype=np.int64)
+        angles = np.array([k.angle for k in keypoints], dtype=np.float64)
         keep = spread_over_grid(
             xy, response, self.camera.width, self.camera.height, self.settings.grid_cols,
             self.settings.grid_rows, self.budget,
         )  # fmt: skip
         xy = xy[keep]
-        return Features(xy, self.undistort(xy), np.ascontiguousarray(descriptors[keep]), octaves[keep])
+        return Features(
+            xy, self.undistort(xy), np.ascontiguousarray(descriptors[keep]), octaves[keep], angles[keep]
+        )
 
     def undistort(self, xy: np.ndarray) -> np.ndarray:
         if not self.camera.is_distorted or len(xy) == 0:
@@ -116,25 +126,45 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def match_in_radius(
     projected: np.ndarray,
     point_descriptors: np.ndarray,
+    point_levels: np.ndarray,
     keypoint_tree: cKDTree,
-    keypoint_descriptors: np.ndarray,
+    features: Features,
     radius: float,
     max_hamming: int,
     ratio: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Match projected points to keypoints within ``radius`` px: (point index, keypoint index) arrays."""
+    """Match projected points to keypoints within ``radius`` px: (point index, keypoint index) arrays.
+
+    A point is only compared with keypoints detected within one pyramid level of its predicted level
+    ``point_levels`` (what its distance from the camera implies for the patch its descriptor shows).
+    """
     none = np.zeros(0, np.int64)
     if len(projected) == 0 or keypoint_tree.n == 0:
         return none, none
     pairs = cKDTree(projected).sparse_distance_matrix(keypoint_tree, radius, output_type="ndarray")
-    if len(pairs) == 0:
-        return none, none
     point = pairs["i"].astype(np.int64)
     keypoint = pairs["j"].astype(np.int64)
-    distance = hamming(point_descriptors[point], keypoint_descriptors[keypoint])
+    same_scale = np.abs(features.octaves[keypoint] - point_levels[point]) <= 1
+    point, keypoint = point[same_scale], keypoint[same_scale]
+    if len(point) == 0:
+        return none, none
+    distance = hamming(point_descriptors[point], features.descriptors[keypoint])
     best, second = best_two_per_group(point, distance)
     accept = (distance[best] <= max_hamming) & (distance[best] < ratio * second)
     return unique_targets(point[best][accept], keypoint[best][accept], distance[best][accept])
+
+
+def consistent_rotation(angle_difference: np.ndarray, bins: int, min_share: float) -> np.ndarray:
+    """ORB-SLAM's rotation check: which matches fall in the three most popular bins of the keypoint
+    angle differences (deg). True matches share the camera's roll; false ones scatter. The second and
+    third bins count only with ``min_share`` of the first's matches."""
+    if len(angle_difference) == 0:
+        return np.zeros(0, bool)
+    index = (np.mod(angle_difference, 360.0) * bins / 360.0).astype(np.int64) % bins
+    counts = np.bincount(index, minlength=bins)
+    top = np.argsort(-counts, kind="stable")[:3]
+    kept = top[counts[top] >= max(1.0, min_share * counts[top[0]])]
+    return np.isin(index, kept)
 
 
 def best_two_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,8 +7,9 @@ Per frame: ORB features; then, by state,
   triangulated points as the first map points and a two-view bundle adjustment.
 * tracking: pose from the local map (``tracker``). A frame becomes a keyframe when it tracks less
   than ``tracked_ratio`` of the last keyframe's points or ``max_interval`` has passed; the keyframe
-  adds its observations, triangulates new points with its neighbours, runs the local bundle
-  adjustment (``local_ba``) and culls weak points.
+  adds its observations, triangulates new points with its newest neighbours that have a baseline
+  (``min_baseline_ratio`` of the median depth; keyframes only a frame or two apart see too little
+  parallax to add points), runs the local bundle adjustment (``local_ba``) and culls weak points.
 * lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
   features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
   poses live in a new map frame: they are never spliced into the old one.
@@ -69,7 +70,7 @@ class MonoVo:
             config.tracking, config.relocalisation, self.K, self.octave_sigma,
             (camera.width, camera.height), count_scale, config.seed,
         )  # fmt: skip
-        self.segment_map = SegmentMap(0)
+        self.segment_map = SegmentMap(0, self.octave_sigma)
         self.all_keyframes: list[KeyframeState] = []
         self.mode: TrackingState = "initialising"
         self.T_cw_last: np.ndarray | None = None
@@ -122,7 +123,7 @@ class MonoVo:
             init.reference_index, init.reference_timestamp, np.eye(4), init.reference, init.reference_image
         )
         second = self._new_keyframe(frame.index, frame.timestamp, init.T_cw, features, frame.image)
-        ids = self.segment_map.points.add(init.points_w, features.descriptors[init.current_idx], first.id, 0)
+        ids = self.segment_map.points.add(init.points_w, first.id)
         self.segment_map.observe(first, init.reference_idx, ids)
         self.segment_map.observe(second, init.current_idx, ids)
         self._bundle_adjust()
@@ -196,7 +197,7 @@ class MonoVo:
             "frame %d: relocalisation failed %d times; starting map segment %d",
             frame.index, self.failed_relocalisations, segment,
         )  # fmt: skip
-        self.segment_map = SegmentMap(segment)
+        self.segment_map = SegmentMap(segment, self.octave_sigma)
         self.initializer.reset()
         self.pending = []
         self.mode = "initialising"
@@ -227,8 +228,7 @@ class MonoVo:
         previous = self.segment_map.keyframes[-1]
         keyframe = self._new_keyframe(frame.index, frame.timestamp, estimate.T_cw, features, frame.image)
         self.segment_map.observe(keyframe, estimate.keypoint_idx, estimate.point_ids)
-        neighbours = self.segment_map.keyframes[-1 - self.config.keyframes.triangulation_neighbours : -1]
-        for neighbour in reversed(neighbours):
+        for neighbour in self._triangulation_neighbours(keyframe, estimate):
             triangulate_new_points(
                 self.segment_map, keyframe, neighbour, self.K, self.octave_sigma, self.config.keyframes,
                 self.config.tracking.inlier_threshold, self.triangulation_radius,
@@ -239,6 +239,23 @@ class MonoVo:
             previous, keyframe, len(estimate.keypoint_idx)
         )
         return keyframe
+
+    def _triangulation_neighbours(
+        self, keyframe: KeyframeState, estimate: PoseEstimate
+    ) -> list[KeyframeState]:
+        """The newest earlier keyframes with a baseline of ``min_baseline_ratio`` x median depth."""
+        s = self.config.keyframes
+        depths = transform(keyframe.T_cw, self.segment_map.points.positions[estimate.point_ids])[:, 2]
+        median_depth = float(np.median(depths)) if len(depths) else 0.0
+        center = invert(keyframe.T_cw)[:3, 3]
+        neighbours = []
+        for other in reversed(self.segment_map.keyframes[-1 - s.triangulation_window : -1]):
+            baseline = float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center))
+            if baseline >= s.min_baseline_ratio * median_depth:
+                neighbours.append(other)
+                if len(neighbours) == s.triangulation_neighbours:
+                    break
+        return neighbours
 
     def _new_keyframe(
         self, frame_index: int, timestamp: float, T_cw: np.ndarray, features: Features, image: np.ndarray

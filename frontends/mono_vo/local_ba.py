@@ -4,8 +4,10 @@ Variables: the poses of the last ``window`` keyframes and every map point they o
 outside the window that also observe those points enter with a tight prior (fixed), like ORB-SLAM's
 local BA, which anchors the window to the older map: position, orientation and scale of the map
 stay where the earlier keyframes put them. At the start of a segment there are no older keyframes;
-then the first keyframe is fixed and the second gets a tight prior on its position only, which keeps
-the first baseline (the map's scale) and leaves its rotation free.
+then the first keyframe is fixed and the second keeps only its distance from the first (a range
+factor): that fixes the gauge's seventh degree of freedom, the map's scale, and nothing more. The
+direction of the first baseline stays free, so later keyframes can correct an initialisation whose
+translation was poorly conditioned (a short baseline during a rotation).
 
 Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels with a Huber kernel; the pixel
 sigma grows with the keypoint's pyramid level. Levenberg-Marquardt runs a few iterations (bounded
@@ -25,7 +27,6 @@ from frontends.mono_vo.geometry import invert, project
 from frontends.mono_vo.map import KeyframeState, SegmentMap
 
 _FIXED_SIGMA = 1e-6
-_FREE_ROTATION_SIGMA = 10.0
 
 
 @dataclass(frozen=True)
@@ -134,17 +135,18 @@ def _add_gauge_priors(
         graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)), tight))
     if fixed:
         return
-    # Segment start: fix the first keyframe, and the position (hence the scale) of the second.
+    # Segment start: fix the first keyframe, and the distance (the map's scale) of the second.
     first, *rest = window
     graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first.id), gtsam.Pose3(invert(first.T_cw)), tight))
     if rest:
-        position_only = gtsam.noiseModel.Diagonal.Sigmas(
-            np.r_[np.full(3, _FREE_ROTATION_SIGMA), np.full(3, _FIXED_SIGMA)]
-        )
         second = rest[0]
+        baseline = float(np.linalg.norm(invert(second.T_cw)[:3, 3] - invert(first.T_cw)[:3, 3]))
         graph.add(
-            gtsam.PriorFactorPose3(
-                gtsam.symbol("x", second.id), gtsam.Pose3(invert(second.T_cw)), position_only
+            gtsam.RangeFactorPose3(
+                gtsam.symbol("x", first.id),
+                gtsam.symbol("x", second.id),
+                baseline,
+                gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA),
             )
         )
 

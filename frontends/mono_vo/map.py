@@ -6,6 +6,13 @@ few keyframes rather than a walk over per-point Python objects. Per point the st
 descriptor (the newest observation's: appearance drifts with the viewpoint), the number of keyframes
 observing it, and ORB-SLAM's visible/found counters for culling points that are predicted in view
 but rarely matched.
+
+For the tracker's projection search each point also keeps ORB-SLAM's viewing statistics: the mean
+viewing direction (unit rays from the observing keyframes), the descriptor keypoint's angle, and the
+distance range over which its descriptor patch stays within the pyramid (``max_distance`` = distance
+x scale factor^octave when observed, ``min_distance`` = that / scale factor^(levels-1)). A point
+seen from far outside that range or from another side (a background point behind an occluder seen
+from a new angle) would show a different patch, so it is not searched for.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from frontends.mono_vo.features import Features
+from frontends.mono_vo.geometry import invert
 from frontends.types import Keyframe
 
 
@@ -45,31 +53,40 @@ class PointStore:
     found: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     first_keyframe: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     alive: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    #: Mean viewing direction (unit), descriptor angle (deg), scale-invariance distance range.
+    normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    angles: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    min_distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    max_distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return len(self.positions)
 
-    def add(
-        self, positions: np.ndarray, descriptors: np.ndarray, keyframe_id: int, observations: int
-    ) -> np.ndarray:
-        """Append points; returns their ids."""
+    def add(self, positions: np.ndarray, keyframe_id: int) -> np.ndarray:
+        """Append points without observations (``SegmentMap.observe`` fills in the rest); their ids."""
         count = len(positions)
         ids = np.arange(len(self), len(self) + count)
         self.positions = np.concatenate([self.positions, positions])
-        self.descriptors = np.concatenate([self.descriptors, descriptors])
-        self.observations = np.concatenate([self.observations, np.full(count, observations)])
+        self.descriptors = np.concatenate([self.descriptors, np.zeros((count, 32), np.uint8)])
+        self.observations = np.concatenate([self.observations, np.zeros(count, np.int64)])
         self.visible = np.concatenate([self.visible, np.ones(count, np.int64)])
         self.found = np.concatenate([self.found, np.ones(count, np.int64)])
         self.first_keyframe = np.concatenate([self.first_keyframe, np.full(count, keyframe_id)])
         self.alive = np.concatenate([self.alive, np.ones(count, bool)])
+        self.normals = np.concatenate([self.normals, np.zeros((count, 3))])
+        self.angles = np.concatenate([self.angles, np.zeros(count)])
+        self.min_distance = np.concatenate([self.min_distance, np.zeros(count)])
+        self.max_distance = np.concatenate([self.max_distance, np.zeros(count)])
         return ids
 
 
 class SegmentMap:
     """Keyframes and map points of one map segment."""
 
-    def __init__(self, segment: int) -> None:
+    def __init__(self, segment: int, octave_scale: np.ndarray) -> None:
         self.segment = segment
+        #: Scale factor of each pyramid level (1, 1.2, 1.44, ...).
+        self.octave_scale = octave_scale
         self.points = PointStore()
         self.keyframes: list[KeyframeState] = []
 
@@ -90,10 +107,20 @@ class SegmentMap:
         return ids[ids >= 0]
 
     def observe(self, keyframe: KeyframeState, keypoint_idx: np.ndarray, point_ids: np.ndarray) -> None:
-        """Record that the keyframe sees ``point_ids`` at ``keypoint_idx``."""
+        """Record that the keyframe sees ``point_ids`` at ``keypoint_idx``; the newest observation
+        gives the descriptor, its angle and distance range, and joins the mean viewing direction."""
+        p = self.points
         keyframe.point_ids[keypoint_idx] = point_ids
-        self.points.observations[point_ids] += 1
-        self.points.descriptors[point_ids] = keyframe.features.descriptors[keypoint_idx]
+        ray = p.positions[point_ids] - invert(keyframe.T_cw)[:3, 3]
+        distance = np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
+        normal = p.normals[point_ids] * p.observations[point_ids, None] + ray / distance[:, None]
+        p.normals[point_ids] = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
+        p.observations[point_ids] += 1
+        p.descriptors[point_ids] = keyframe.features.descriptors[keypoint_idx]
+        p.angles[point_ids] = keyframe.features.angles[keypoint_idx]
+        octave = np.minimum(keyframe.features.octaves[keypoint_idx], len(self.octave_scale) - 1)
+        p.max_distance[point_ids] = distance * self.octave_scale[octave]
+        p.min_distance[point_ids] = p.max_distance[point_ids] / self.octave_scale[-1]
 
     def drop_observations(self, keyframe: KeyframeState, keypoint_idx: np.ndarray) -> None:
         ids = keyframe.point_ids[keypoint_idx]

@@ -5,7 +5,13 @@ Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
 1. Predict the pose with a constant velocity model.
 2. Project the points of the last ``local_keyframes`` keyframes; match them to keypoints within
    ``search_radius`` px (Hamming limit, ratio test; ``features.match_in_radius``). Too few matches
-   (a sudden motion) doubles the radius once.
+   (a sudden motion) doubles the radius once. As in ORB-SLAM, a point is searched for only if the
+   camera sees it within ``max_view_angle_deg`` of its mean viewing direction and within its
+   scale-invariance distance range, only among keypoints within one pyramid level of the level its
+   distance predicts, and the matches must agree on the keypoint rotation (orientation histogram).
+   Without these rules, background points hidden behind a near object passing in front of them
+   were still projected and matched to the object's (repetitive) texture, and PnP followed the
+   occluder while reporting a normal inlier count.
 3. PnP RANSAC (seeded USAC) on those matches, then Levenberg-Marquardt refinement of its inliers:
    the prediction only chooses candidates, it never biases the pose.
 4. Project again from that pose with the narrow ``refine_radius``, which recovers the points the
@@ -26,8 +32,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.mono_vo.config import RelocalisationSettings, TrackingSettings
-from frontends.mono_vo.features import Features, match_descriptors, match_in_radius
-from frontends.mono_vo.geometry import fit_or_none, frame_seed, from_rvec, project, to_rvec, usac_params
+from frontends.mono_vo.features import Features, consistent_rotation, match_descriptors, match_in_radius
+from frontends.mono_vo.geometry import (
+    fit_or_none,
+    frame_seed,
+    from_rvec,
+    invert,
+    project,
+    to_rvec,
+    usac_params,
+)
 from frontends.mono_vo.map import SegmentMap
 
 
@@ -157,19 +171,37 @@ class Tracker:
         radius: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         points = segment_map.points
-        uv, depth = project(self.K, T_cw, points.positions[local_ids])
-        visible = self._in_image(uv, depth)
-        candidates = local_ids[visible]
         s = self.settings
+        uv, depth = project(self.K, T_cw, points.positions[local_ids])
+        ray = points.positions[local_ids] - invert(T_cw)[:3, 3]
+        distance = np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
+        cosine = np.einsum("ij,ij->i", ray, points.normals[local_ids]) / distance
+        searched = (
+            self._in_image(uv, depth)
+            & (cosine >= np.cos(np.radians(s.max_view_angle_deg)))
+            & (distance >= points.min_distance[local_ids] / s.distance_margin)
+            & (distance <= points.max_distance[local_ids] * s.distance_margin)
+        )
+        candidates = local_ids[searched]
+        scale = segment_map.octave_scale
+        level = np.ceil(np.log(points.max_distance[candidates] / distance[searched]) / np.log(scale[1]))
         point_idx, keypoint_idx = match_in_radius(
-            uv[visible],
+            uv[searched],
             points.descriptors[candidates],
+            np.clip(level, 0, len(scale) - 1).astype(np.int64),
             tree,
-            features.descriptors,
+            features,
             radius,
             s.max_hamming,
             s.ratio,
         )
+        if s.rotation_bins > 0:
+            consistent = consistent_rotation(
+                features.angles[keypoint_idx] - points.angles[candidates[point_idx]],
+                s.rotation_bins,
+                s.rotation_min_share,
+            )
+            point_idx, keypoint_idx = point_idx[consistent], keypoint_idx[consistent]
         return keypoint_idx, candidates[point_idx]
 
     def _in_image(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -73,7 +73,7 @@ def triangulate_new_points(
         K, (neighbour.T_cw, keyframe.T_cw), (x_other, x_own), points_w, max_error_sigmas * sigma,
         settings.min_parallax_deg,
     )  # fmt: skip
-    ids = segment_map.points.add(points_w[good], keyframe.features.descriptors[own[good]], keyframe.id, 0)
+    ids = segment_map.points.add(points_w[good], keyframe.id)
     segment_map.observe(neighbour, other[good], ids)
     segment_map.observe(keyframe, own[good], ids)
     return len(ids)
