@@ -64,7 +64,7 @@ from tqdm import tqdm
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
 from eval.report import REPORT_FILE, write_plots, write_report
 from eval.viewer import RerunViewer
-from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, TrackResult
+from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, MaskingFrontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import config_to_dict, load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
@@ -263,6 +263,8 @@ def run_odometry(
     closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
     if closing.detector is not None and isinstance(frontend, CorrectableFrontend):
         closing.on_correction = frontend.apply_correction
+    if closing.objects is not None and isinstance(frontend, MaskingFrontend):
+        frontend.set_dynamic_objects(closing.movable_boxes)
     if viewer is not None:
         attach_viewer(viewer, closing)
     run = PipelineRun()

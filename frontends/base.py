@@ -12,7 +12,7 @@ camera intrinsics and ``--set key=value`` overrides / a YAML file.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -60,6 +60,16 @@ class CorrectableFrontend(Frontend, Protocol):
         """Move keyframes to ``poses`` (camera-to-world Sim(3) ``[sR, t; 0, 1]`` by keyframe id, in
         the frame of the map the frontend gave), with their map points and the current tracking
         state, so that tracking continues in the corrected map instead of fighting the loop."""
+        ...
+
+
+@runtime_checkable
+class MaskingFrontend(Frontend, Protocol):
+    """A frontend that keeps objects which move on their own out of its map (DynaSLAM-style)."""
+
+    def set_dynamic_objects(self, provider: Callable[[Frame], Sequence[Sequence[float]]] | None) -> None:
+        """``provider(frame)`` gives the boxes (x0, y0, x1, y1) of moving objects in a frame the
+        frontend is about to map (a keyframe); features inside them are not mapped."""
         ...
 
 

@@ -35,8 +35,9 @@ from typing import Any
 import numpy as np
 
 from frontends.base import TrackResult
-from frontends.types import Frame, Keyframe
+from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
+from lcd.objects.filtering import MOVABLE_LABELS
 from slam_backend.posegraph import PoseGraphBackend
 from slam_backend.verify import Verification, Verifier
 
@@ -70,6 +71,8 @@ class LoopClosingConfig:
     floor_rotation_sigma: float = 1e-4
     floor_translation_sigma: float = 1e-3
     floor_log_scale_sigma: float = 1e-3
+    #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
+    movable_labels: tuple[str, ...] = MOVABLE_LABELS
 
 
 @dataclass(frozen=True)
@@ -154,6 +157,8 @@ class LoopClosing:
         self._segment_frame: dict[int, np.ndarray] = {}
         self._paths: dict[int, str | None] = {}
         self._records: list[LoopRecord] = []
+        #: Detections of frames the frontend asked about (``movable_boxes``), reused for keyframes.
+        self._detections: dict[int, tuple[DetectedObject, ...]] = {}
         self._previous: Keyframe | None = None
 
     # -- input -------------------------------------------------------------------------------------
@@ -240,20 +245,36 @@ class LoopClosing:
             c.default_rotation_sigma, c.default_translation_sigma * length, c.default_log_scale_sigma
         )
 
+    def _detect(self, frame: Frame) -> tuple[DetectedObject, ...]:
+        """The object detector's objects in ``frame`` (computed once per frame)."""
+        if frame.index in self._detections:
+            return self._detections.pop(frame.index)
+        assert self.objects is not None
+        start = time.perf_counter()
+        try:
+            found = tuple(self.objects.detect(frame.image, frame))
+        except Exception as exc:  # plugin boundary: a failing detector costs this frame its objects
+            self.counters.object_detector_failures += 1
+            log.warning("object detector %s failed on frame %d: %r", self.objects.name, frame.index, exc)
+            found = ()
+        self.counters.seconds["objects"] += time.perf_counter() - start
+        return found
+
+    def movable_boxes(self, frame: Frame) -> list[tuple[float, float, float, float]]:
+        """Boxes of the objects in ``frame`` that move on their own (``movable_labels``), for a
+        frontend that keeps them out of its map; the detections are kept for the keyframe."""
+        if self.objects is None:
+            return []
+        found = self._detect(frame)
+        self._detections[frame.index] = found
+        movable = set(self.config.movable_labels)
+        return [o.box for o in found if o.label in movable]
+
     def _with_objects(self, keyframe: Keyframe) -> Keyframe:
         if self.objects is None or keyframe.image is None:
             return keyframe
-        start = time.perf_counter()
-        frame = Frame(
-            keyframe.frame_index, keyframe.timestamp, keyframe.image, self._paths.get(keyframe.frame_index)
-        )
-        try:
-            found = tuple(self.objects.detect(keyframe.image, frame))
-        except Exception as exc:  # plugin boundary: a failing detector costs this keyframe its objects
-            self.counters.object_detector_failures += 1
-            log.warning("object detector %s failed on keyframe %d: %r", self.objects.name, keyframe.id, exc)
-            found = ()
-        self.counters.seconds["objects"] += time.perf_counter() - start
+        path = self._paths.get(keyframe.frame_index)
+        found = self._detect(Frame(keyframe.frame_index, keyframe.timestamp, keyframe.image, path))
         self.counters.keyframes_with_objects += bool(found)
         # The frontend's keyframe object stays the frontend's; the detector gets a copy with objects.
         return replace(keyframe, objects=found)

@@ -40,6 +40,8 @@ class KeyframeState:
     point_ids: np.ndarray
     #: What the API hands out (pose and points3d refreshed from T_cw and the map).
     output: Keyframe
+    #: (N,) keypoints on objects that move on their own (DynaSLAM's masks): never mapped.
+    dynamic: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass

@@ -41,8 +41,8 @@ def triangulate_new_points(
     search_radius: float,
 ) -> int:
     """Add the points triangulated between two keyframes of ``segment_map``; returns how many."""
-    free = np.flatnonzero(keyframe.point_ids < 0)
-    free_neighbour = np.flatnonzero(segment_map.live_ids(neighbour) < 0)
+    free = np.flatnonzero((keyframe.point_ids < 0) & ~keyframe.dynamic)
+    free_neighbour = np.flatnonzero((segment_map.live_ids(neighbour) < 0) & ~neighbour.dynamic)
     mapped = keyframe.point_ids >= 0
     if len(free) == 0 or len(free_neighbour) == 0 or not mapped.any():
         return 0
