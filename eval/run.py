@@ -261,7 +261,11 @@ def run_odometry(
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
-    if closing.detector is not None and isinstance(frontend, CorrectableFrontend):
+    if (
+        closing.detector is not None
+        and closing.config.correct_frontend
+        and isinstance(frontend, CorrectableFrontend)
+    ):
         closing.on_correction = frontend.apply_correction
     if closing.objects is not None and isinstance(frontend, MaskingFrontend):
         frontend.set_dynamic_objects(closing.movable_boxes)

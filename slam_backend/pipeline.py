@@ -71,6 +71,9 @@ class LoopClosingConfig:
     floor_rotation_sigma: float = 1e-4
     floor_translation_sigma: float = 1e-3
     floor_log_scale_sigma: float = 1e-3
+    #: Hand the backend's estimates to a frontend that can move its map (``CorrectableFrontend``)
+    #: after every accepted loop, so that tracking continues in the corrected map.
+    correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
 
