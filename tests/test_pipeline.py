@@ -270,3 +270,14 @@ def test_symbio_run_viewer_writes_a_recording(small_loop_scene: Path, tmp_path: 
     argv = ["run", str(small_loop_scene), "--max-frames", "60", "--viewer", "rerun", "--no-progress"]
     assert symbio_main([*argv, "--out", str(out)]) == 0
     assert (out / "run.rrd").stat().st_size > 10_000
+
+
+def test_two_runs_give_byte_identical_outputs(small_loop_scene: Path, tmp_path: Path) -> None:
+    outputs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        argv = ["run", str(small_loop_scene), "--max-frames", "150", "--no-progress", "--out", str(out)]
+        assert symbio_main(argv) == 0
+        outputs.append(out)
+    for name in (TRAJECTORY_FILE, ODOMETRY_FILE, "keyframes_tum.txt", LOOPS_FILE):
+        assert (outputs[0] / name).read_bytes() == (outputs[1] / name).read_bytes(), name
