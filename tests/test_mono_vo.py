@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from eval.bench_frontend import evaluate
 from frontends.base import FRONTENDS, Frontend, TrackResult
@@ -214,3 +215,34 @@ def test_kitti_clip_accuracy(shared: Path) -> None:
     assert figures["posed_frames"] == len(dataset)
     assert figures["segments"] == 1
     assert figures["ate_percent_of_path"] <= 0.5
+
+
+def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    """A loop correction that moves the whole map by a similarity S: the keyframes land on S's
+    poses and the next frames are tracked in the moved map (their poses are S applied to the poses
+    an uncorrected twin frontend reports)."""
+    camera, frames = loop_frames
+    corrected, twin = create(camera), create(camera)
+    run(corrected, frames[:80])
+    run(twin, frames[:80])
+    S = np.eye(4)
+    S[:3, :3] = 1.7 * Rotation.from_euler("xyz", [3.0, -10.0, 25.0], degrees=True).as_matrix()
+    S[:3, 3] = [0.4, -1.2, 2.0]
+    corrected.apply_correction({kf.id: S @ kf.pose for kf in corrected.keyframes()})
+    for kf, original in zip(corrected.keyframes(), twin.keyframes(), strict=True):
+        expected = S @ original.pose
+        np.testing.assert_allclose(kf.pose[:3, 3], expected[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(kf.pose[:3, :3], expected[:3, :3] / 1.7, atol=1e-9)
+    after, reference = run(corrected, frames[80:110]), run(twin, frames[80:110])
+    tracked = [
+        (a, r) for a, r in zip(after, reference, strict=True) if a.pose is not None and r.pose is not None
+    ]
+    assert len(tracked) >= 25
+    # Within 5 % of the distance the camera covers meanwhile (the two maps are bundle adjusted from
+    # different coordinates, so they differ by numerical noise, not by the correction).
+    centres = np.array([r.pose[:3, 3] for _, r in tracked])
+    tolerance = 0.05 * 1.7 * float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
+    for a, r in tracked:
+        expected = S @ r.pose
+        assert np.linalg.norm(a.pose[:3, 3] - expected[:3, 3]) < tolerance
+        assert angle_deg((np.trace(a.pose[:3, :3].T @ expected[:3, :3] / 1.7) - 1) / 2) < 0.5

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from frontends.base import TrackingState, TrackResult
 from frontends.mono_vo.config import MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor
-from frontends.mono_vo.geometry import invert, transform
+from frontends.mono_vo.geometry import invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -310,8 +310,14 @@ class MonoVo:
         reference = np.where(np.isin(points.first_keyframe, known), points.first_keyframe, known[-1])
         for kf_id in np.unique(reference):
             S = corrections[int(kf_id)]
+            scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
             chosen = reference == kf_id
             points.positions[chosen] = transform(S, points.positions[chosen])
+            # What the projection checks know of a point moves with it: the mean viewing direction
+            # turns with the rotation, the distance range over which its descriptor holds scales.
+            points.normals[chosen] = linear_map(S[:3, :3] / scale, points.normals[chosen])
+            points.min_distance[chosen] *= scale
+            points.max_distance[chosen] *= scale
         last = corrections.get(newest, corrections[int(known[-1])])
         if self.T_cw_last is not None:
             self.T_cw_last = invert(_without_scale(last @ invert(self.T_cw_last)))
