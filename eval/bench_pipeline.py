@@ -27,7 +27,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from eval.run import Components, build_loop_closing, run_odometry
+from eval.demo import synthetic_components
+from eval.run import build_loop_closing, run_odometry
 from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
@@ -51,7 +52,7 @@ def scene(work: Path, trajectory: str, seed: int, frames: int) -> Path:
 
 def run_scene(folder: Path, out: Path, loops: bool = True) -> dict[str, Any]:
     dataset = open_dataset(folder)
-    components = Components(object_detector="oracle", overrides={"object_detector": ["miss_rate=0.3"]})
+    components = synthetic_components()
     frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
     closing = build_loop_closing(dataset, components if loops else None)
     return run_odometry(dataset, frontend, out, loop_closing=closing, progress=False, tolerance=3)

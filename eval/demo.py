@@ -39,6 +39,13 @@ TABLE = (
 )
 
 
+def synthetic_components() -> Components:
+    """The default components with the oracle object detector at ``ORACLE_MISS_RATE``."""
+    return Components(
+        object_detector="oracle", overrides={"object_detector": [f"miss_rate={ORACLE_MISS_RATE}"]}
+    )
+
+
 def add_parser(subparsers: Any) -> None:
     demo = subparsers.add_parser(
         "demo",
@@ -72,9 +79,7 @@ def run(args: argparse.Namespace) -> int:
     )
     render_seconds = time.perf_counter() - start
     dataset = open_dataset(scene_dir)
-    components = Components(
-        object_detector="oracle", overrides={"object_detector": [f"miss_rate={ORACLE_MISS_RATE}"]}
-    )
+    components = synthetic_components()
     frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
     closing = build_loop_closing(dataset, components)
     description = {

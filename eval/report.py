@@ -45,25 +45,33 @@ def _trajectory(poses: Poses) -> PoseTrajectory3D:
     )
 
 
-def _with_gt(dataset: Dataset, poses: Poses) -> tuple[Poses, PoseTrajectory3D | None]:
-    """The poses that have GT, and the GT trajectory of exactly those frames."""
+def with_ground_truth(dataset: Dataset, poses: Poses) -> tuple[Poses, PoseTrajectory3D | None]:
+    """The posed frames that have GT, and the GT trajectory of exactly those frames (None without
+    GT or with fewer than three such frames: a similarity needs three non-collinear positions)."""
     if dataset.gt_poses is None:
-        return poses, None
+        return [], None
     kept = [p for p in poses if np.isfinite(dataset.gt_poses[p[0]]).all()]
     if len(kept) < 3:
-        return poses, None
+        return kept, None
     gt = PoseTrajectory3D(
-        poses_se3=[dataset.gt_poses[i] for i, _, _ in kept], timestamps=np.array([t for _, t, _ in kept])
+        poses_se3=[dataset.gt_poses[i] for i, _, _ in kept],
+        timestamps=np.array([t for _, t, _ in kept], dtype=np.float64),
     )
     return kept, gt
 
 
-def _aligned(poses: Poses, gt: PoseTrajectory3D | None) -> PoseTrajectory3D:
+def aligned(poses: Poses, gt: PoseTrajectory3D) -> PoseTrajectory3D:
+    """``poses`` Sim(3)-aligned to ``gt`` (evo's Umeyama); raises evo's GeometryException when degenerate."""
     trajectory = _trajectory(poses)
+    trajectory.align(gt, correct_scale=True)
+    return trajectory
+
+
+def _shown(poses: Poses, gt: PoseTrajectory3D | None) -> PoseTrajectory3D:
     if gt is not None:
         with contextlib.suppress(GeometryException):  # degenerate (no motion): shown unaligned
-            trajectory.align(gt, correct_scale=True)
-    return trajectory
+            return aligned(poses, gt)
+    return _trajectory(poses)
 
 
 def write_plots(
@@ -78,9 +86,11 @@ def write_plots(
     if len(final) < 3:
         return []
     written = []
-    odometry_kept, gt = _with_gt(dataset, odometry)
-    final_kept, _ = _with_gt(dataset, final)
-    before, after = _aligned(odometry_kept, gt), _aligned(final_kept, gt)
+    odometry_kept, gt = with_ground_truth(dataset, odometry)
+    final_kept, _ = with_ground_truth(dataset, final)
+    if gt is None:
+        odometry_kept, final_kept = odometry, final
+    before, after = _shown(odometry_kept, gt), _shown(final_kept, gt)
     reference = gt.positions_xyz if gt is not None else after.positions_xyz
     axes = tuple(int(a) for a in np.sort(np.argsort(np.ptp(reference, axis=0))[-2:]))
     mode = _MODES[(axes[0], axes[1])]
@@ -102,16 +112,12 @@ def write_plots(
     written.append(TOP_VIEW_FILE)
     if gt is not None:
         figure, ax = plt.subplots(figsize=(9, 4))
-        for trajectory, poses, color, label in (
-            (before, odometry_kept, "tab:orange", "odometry"),
-            (after, final_kept, "tab:blue", "loop closed"),
+        for trajectory, color, label in (
+            (before, "tab:orange", "odometry"),
+            (after, "tab:blue", "loop closed"),
         ):
             ape = metrics.APE(metrics.PoseRelation.translation_part)
-            reference_poses = PoseTrajectory3D(
-                poses_se3=[dataset.gt_poses[i] for i, _, _ in poses],  # type: ignore[index]
-                timestamps=trajectory.timestamps,
-            )
-            ape.process_data((reference_poses, trajectory))
+            ape.process_data((gt, trajectory))
             ax.plot(trajectory.timestamps - trajectory.timestamps[0], ape.error, color=color, label=label)
         ax.set_xlabel("time (s)")
         ax.set_ylabel("APE translation (m, Sim(3)-aligned)")

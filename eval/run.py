@@ -61,8 +61,9 @@ from evo.core.geometry import GeometryException
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
+from eval.lcd_eval import default_object_detector
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
-from eval.report import REPORT_FILE, write_plots, write_report
+from eval.report import REPORT_FILE, aligned, with_ground_truth, write_plots, write_report
 from eval.viewer import RerunViewer
 from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, MaskingFrontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
@@ -109,14 +110,15 @@ class Components:
 
 
 def _flatten(mapping: dict[str, Any], prefix: str = "") -> list[str]:
+    """A YAML section as ``key=value`` overrides, each value dumped back to YAML."""
     items = []
     for key, value in mapping.items():
         if isinstance(value, dict):
             items += _flatten(value, f"{prefix}{key}.")
         else:
-            items.append(f"{prefix}{key}={yaml.safe_dump(value, default_flow_style=True).strip()}")
-            if items[-1].endswith("\n..."):
-                items[-1] = items[-1][: -len("\n...")]
+            # A scalar document ends with "..."; the override wants the value alone.
+            dumped = yaml.safe_dump(value, default_flow_style=True).removesuffix("\n").removesuffix("\n...")
+            items.append(f"{prefix}{key}={dumped}")
     return items
 
 
@@ -229,8 +231,6 @@ def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopC
     config = load_config(LoopClosingConfig, None, c.of("loop_closing"))
     if components is None:
         return LoopClosing(backend, config=config)
-    from eval.lcd_eval import default_object_detector
-
     object_name = c.object_detector or default_object_detector(dataset)
     return LoopClosing(
         backend,
@@ -439,30 +439,26 @@ def trajectory_errors(
 ) -> tuple[float | None, float | None, int]:
     """(APE translation RMSE, RPE translation RMSE over ``RPE_DELTA_S``, frames) after Sim(3)
     Umeyama alignment to the GT (evo); None without GT or with fewer than 3 posed GT frames."""
-    if dataset.gt_poses is None:
-        return None, None, 0
-    pairs = [(t, p, dataset.gt_poses[i]) for i, t, p in poses if np.isfinite(dataset.gt_poses[i]).all()]
-    if len(pairs) < 3:  # a similarity transform needs three non-collinear positions
-        return None, None, len(pairs)
-    stamps = np.array([t for t, _, _ in pairs])
-    reference = PoseTrajectory3D(poses_se3=[g for _, _, g in pairs], timestamps=stamps)
-    estimate = PoseTrajectory3D(poses_se3=[p for _, p, _ in pairs], timestamps=stamps)
+    kept, reference = with_ground_truth(dataset, poses)
+    if reference is None:
+        return None, None, len(kept)
     try:
-        estimate.align(reference, correct_scale=True)
+        estimate = aligned(kept, reference)
     except GeometryException as exc:  # e.g. a frontend that never moved: Umeyama is degenerate
         log.warning("Sim(3) alignment to the ground truth failed (%s); no ATE", exc)
-        return None, None, len(pairs)
+        return None, None, len(kept)
+    stamps = reference.timestamps
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((reference, estimate))
     ate = float(ape.get_statistic(metrics.StatisticsType.rmse))
     rpe_value = None
     rate = (len(stamps) - 1) / max(float(stamps[-1] - stamps[0]), 1e-9)
     delta = max(1, round(RPE_DELTA_S * rate))
-    if len(pairs) > delta:
+    if len(kept) > delta:
         rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta, metrics.Unit.frames, all_pairs=False)
         rpe.process_data((reference, estimate))
         rpe_value = float(rpe.get_statistic(metrics.StatisticsType.rmse))
-    return ate, rpe_value, len(pairs)
+    return ate, rpe_value, len(kept)
 
 
 def gt_path_length(dataset: Dataset, results: list[TrackResult]) -> float | None:

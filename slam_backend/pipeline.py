@@ -38,7 +38,8 @@ from frontends.base import TrackResult
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from lcd.objects.filtering import MOVABLE_LABELS
-from slam_backend.posegraph import PoseGraphBackend
+from slam_backend.lie import as_4x4
+from slam_backend.posegraph import LoopDecision, PoseGraphBackend
 from slam_backend.verify import Verification, Verifier
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,6 @@ class LoopClosingCounters:
     object_detector_failures: int = 0
     loop_detector_failures: int = 0
     verifier_failures: int = 0
-    keyframes_with_objects: int = 0
     seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
 
 
@@ -117,10 +117,9 @@ def _sigma_covariance(rotation: float, translation: float, log_scale: float) -> 
     return np.diag(np.r_[np.full(3, rotation), np.full(3, translation), log_scale] ** 2)
 
 
-def _without_scale(matrix: np.ndarray) -> np.ndarray:
-    pose = np.array(matrix, dtype=np.float64)
-    pose[:3, :3] /= float(np.cbrt(np.linalg.det(pose[:3, :3])))
-    return pose
+def _backend_reason(decision: LoopDecision | None) -> str:
+    """Why a verified loop is not in the graph ("" when it is)."""
+    return "" if decision is None or decision.accepted else "rejected by the backend"
 
 
 class LoopClosing:
@@ -278,7 +277,6 @@ class LoopClosing:
             return keyframe
         path = self._paths.get(keyframe.frame_index)
         found = self._detect(Frame(keyframe.frame_index, keyframe.timestamp, keyframe.image, path))
-        self.counters.keyframes_with_objects += bool(found)
         # The frontend's keyframe object stays the frontend's; the detector gets a copy with objects.
         return replace(keyframe, objects=found)
 
@@ -301,23 +299,18 @@ class LoopClosing:
             return []
         verifications = [self._verify(keyframe, candidate) for candidate in chosen]
         start = time.perf_counter()
-        verified = [
-            (c, v)
-            for c, v in zip(chosen, verifications, strict=True)
-            if v.verified and v.relative is not None and v.covariance is not None
-        ]
-        loops: list[tuple[int, int, np.ndarray, np.ndarray, Mapping[str, Any] | None]] = [
-            (c.match, c.query, v.relative, v.covariance, {"score": float(c.score), "inliers": v.inliers})
-            for c, v in verified
-            if v.relative is not None and v.covariance is not None
-        ]
-        decisions = self.backend.add_loops(loops) if loops else []
+        loops: list[tuple[int, int, np.ndarray, np.ndarray, Mapping[str, Any] | None]] = []
+        positions = []  # of the verified candidates, in the order they go to the backend
+        for position, (c, v) in enumerate(zip(chosen, verifications, strict=True)):
+            if v.verified and v.relative is not None and v.covariance is not None:
+                info = {"score": float(c.score), "inliers": v.inliers}
+                loops.append((c.match, c.query, v.relative, v.covariance, info))
+                positions.append(position)
+        decisions = dict(zip(positions, self.backend.add_loops(loops) if loops else [], strict=True))
         self.counters.seconds["backend"] += time.perf_counter() - start
-        loop_ids = {id(v): d.loop_id for (_, v), d in zip(verified, decisions, strict=True)}
-        accepted = {id(v): d.accepted for (_, v), d in zip(verified, decisions, strict=True)}
         records = []
-        for candidate, verification in zip(chosen, verifications, strict=True):
-            decision_reason = "" if accepted.get(id(verification), False) else "rejected by the backend"
+        for position, (candidate, verification) in enumerate(zip(chosen, verifications, strict=True)):
+            decision = decisions.get(position)
             record = LoopRecord(
                 candidate.query,
                 candidate.match,
@@ -326,10 +319,10 @@ class LoopClosing:
                 float(candidate.score),
                 verification.verified,
                 verification.inliers,
-                accepted.get(id(verification), False),
-                verification.reason or decision_reason,
+                decision is not None and decision.accepted,
+                verification.reason or _backend_reason(decision),
                 verification.scale,
-                loop_ids.get(id(verification)),
+                decision.loop_id if decision is not None else None,
             )
             records.append(record)
             if self.on_loop is not None:
@@ -370,13 +363,7 @@ class LoopClosing:
         """Every verified candidate with the backend's current decision (PCM may revise earlier ones)."""
         decisions = self.backend.decisions()
         return [
-            replace(
-                r,
-                accepted=decisions[r.loop_id].accepted,
-                reason=r.reason
-                if r.reason != "" or decisions[r.loop_id].accepted
-                else "rejected by the backend",
-            )
+            replace(r, accepted=decisions[r.loop_id].accepted, reason=_backend_reason(decisions[r.loop_id]))
             if r.loop_id is not None
             else r
             for r in self._records
@@ -389,12 +376,9 @@ class LoopClosing:
     def keyframes(self) -> list[Keyframe]:
         return [self._keyframes[k] for k in sorted(self._keyframes)]
 
-    def odometry_keyframe_poses(self) -> dict[int, np.ndarray]:
-        return dict(self._odometry_pose)
-
     def corrected_keyframe_poses(self) -> dict[int, np.ndarray]:
         """The backend's keyframe estimates as camera-to-world SE(3) (scale taken out of the rotation)."""
-        return {k: _without_scale(m) for k, m in self._sim3_estimates().items()}
+        return {k: as_4x4(m) for k, m in self._sim3_estimates().items()}
 
     def _sim3_estimates(self) -> dict[int, np.ndarray]:
         start = time.perf_counter()
@@ -408,5 +392,5 @@ class LoopClosing:
         poses = []
         for index in sorted(self._frames):
             posed = self._frames[index]
-            poses.append((index, posed.timestamp, _without_scale(anchors[posed.anchor] @ posed.relative)))
+            poses.append((index, posed.timestamp, as_4x4(anchors[posed.anchor] @ posed.relative)))
         return poses
