@@ -281,3 +281,15 @@ def test_two_runs_give_byte_identical_outputs(small_loop_scene: Path, tmp_path: 
         outputs.append(out)
     for name in (TRAJECTORY_FILE, ODOMETRY_FILE, "keyframes_tum.txt", LOOPS_FILE):
         assert (outputs[0] / name).read_bytes() == (outputs[1] / name).read_bytes(), name
+
+
+def test_a_bad_run_config_names_the_file(tmp_path: Path) -> None:
+    from frontends.errors import ConfigError
+
+    bad = tmp_path / "run.yaml"
+    bad.write_text("detector:\n  name: vbow\nverifer:\n  ratio: 0.7\n")
+    with pytest.raises(ConfigError, match=r"run\.yaml: unknown section 'verifer'"):
+        load_components(bad, [], {})
+    bad.write_text("detector: vbow\n")
+    with pytest.raises(ConfigError, match=r"run\.yaml: section 'detector' must be a mapping"):
+        load_components(bad, [], {})
