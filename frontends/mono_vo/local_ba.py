@@ -9,10 +9,12 @@ factor): that fixes the gauge's seventh degree of freedom, the map's scale, and 
 direction of the first baseline stays free, so later keyframes can correct an initialisation whose
 translation was poorly conditioned (a short baseline during a rotation).
 
-Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels with a Huber kernel; the pixel
-sigma grows with the keypoint's pyramid level. Levenberg-Marquardt runs a few iterations (bounded
-time per keyframe). Afterwards observations whose reprojection error exceeds ``huber_k`` sigmas
-(chi2 95 % with 2 dof) or that fell behind the camera are removed from the map.
+Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels (points keyed by their id)
+with a Huber kernel; the pixel sigma grows with the keypoint's pyramid level. Levenberg-Marquardt
+eliminates the points before the poses (the Schur complement) and runs until an iteration gains
+less than ``relative_error_tolerance`` (at most ``iterations``). Afterwards observations whose
+reprojection error exceeds ``huber_k`` sigmas (chi2 95 % with 2 dof) or that fell behind the camera
+are removed from the map.
 """
 
 from __future__ import annotations
@@ -64,39 +66,49 @@ def local_bundle_adjustment(
     for kf in [*window, *fixed]:
         values.insert(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)))
     positions = segment_map.points.positions
-    for pid in point_ids:
-        values.insert(gtsam.symbol("l", int(pid)), positions[pid])
+    # Points are keyed by their id (pose keys are symbols, far above any id), which lets GTSAM's
+    # batch insertProjectionFactors build each keyframe's factors per pyramid level in C++: the
+    # same factors as one constructor call per observation, at half the cost.
+    for pid in point_ids.tolist():
+        values.insert(pid, positions[pid])
     for kf, keypoint_idx, ids in observations:
         pose_key = gtsam.symbol("x", kf.id)
-        pixels = kf.features.points[keypoint_idx]
         octaves = np.minimum(kf.features.octaves[keypoint_idx], len(noise_by_octave) - 1)
-        for pixel, octave, pid in zip(pixels, octaves.tolist(), ids.tolist(), strict=True):
-            graph.add(
-                gtsam.GenericProjectionFactorCal3_S2(
-                    pixel,
-                    noise_by_octave[octave],
-                    pose_key,
-                    gtsam.symbol("l", pid),
-                    calibration,
-                    False,
-                    False,
-                )
-            )
+        for octave in np.unique(octaves).tolist():
+            chosen = octaves == octave
+            gtsam.utilities.insertProjectionFactors(
+                graph, pose_key, ids[chosen].astype(np.float64),
+                np.ascontiguousarray(kf.features.points[keypoint_idx[chosen]].T), noise_by_octave[octave],
+                calibration,
+            )  # fmt: skip
     _add_gauge_priors(graph, segment_map, window, fixed)
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(settings.iterations)
+    params.setRelativeErrorTol(settings.relative_error_tolerance)
+    params.setOrdering(_points_first_ordering(point_ids, [*window, *fixed]))
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
 
     for kf in window:
         kf.T_cw = invert(result.atPose3(gtsam.symbol("x", kf.id)).matrix())
-    for pid in point_ids:
-        positions[pid] = result.atPoint3(gtsam.symbol("l", int(pid)))
+    for pid in point_ids.tolist():
+        positions[pid] = result.atPoint3(pid)
     outliers, errors = _remove_outliers(segment_map, K, octave_sigma, observations, settings.huber_k)
     return BundleAdjustmentStats(
         len(window), len(point_ids), sum(len(o[1]) for o in observations), outliers,
         float(np.median(errors)) if len(errors) else 0.0,
     )  # fmt: skip
+
+
+def _points_first_ordering(point_ids: np.ndarray, keyframes: list[KeyframeState]) -> gtsam.Ordering:
+    """Eliminate every point before any pose: each point depends only on the poses that see it,
+    so this is the Schur complement of bundle adjustment (COLAMD gets close, but not there)."""
+    ordering = gtsam.Ordering()
+    for pid in point_ids.tolist():
+        ordering.push_back(pid)
+    for kf in keyframes:
+        ordering.push_back(gtsam.symbol("x", kf.id))
+    return ordering
 
 
 def _anchoring_keyframes(
