@@ -1,0 +1,258 @@
+"""Fault injection (``symbio run --inject``): each fault is handled as the README's "What we test
+against" says, and the run's outputs stay consistent with each other.
+
+Frame faults go through the reader's own decoding and the run's own skip-and-count path; plugin
+faults through ``LoopClosing``'s plugin boundary and verification budget. The runs use the
+session's 600-frame 320x240 synthetic loop scene (``small_loop_scene``).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from eval.cli import main as symbio_main
+from eval.inject import FRAME_FAULTS, InjectionSpec
+from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE
+from frontends.base import TrackResult
+from frontends.datasets import open_dataset
+from frontends.errors import ConfigError
+from frontends.trajectory_io import read_tum
+from frontends.types import Keyframe
+from lcd.base import LoopCandidate
+from slam_backend.pipeline import LoopClosing, LoopClosingConfig
+from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
+from slam_backend.verify import Verification
+
+FRAMES = 600
+
+
+def symbio_run(scene: Path, out: Path, *extra: str) -> dict[str, Any]:
+    argv = ["run", str(scene), "--no-progress", "--out", str(out), *extra]
+    assert symbio_main(argv) == 0
+    figures: dict[str, Any] = json.loads((out / METRICS_FILE).read_text())
+    return figures
+
+
+def replay(scene: Path, out: Path, *extra: str) -> dict[str, Any]:
+    """The GT replayed (exact poses, fast), odometry only: what frame faults do to the stream."""
+    trajectory = f"trajectory={scene / 'groundtruth.txt'}"
+    return symbio_run(scene, out, "--frontend", "replay", "--set", trajectory, "--no-loops", *extra)
+
+
+def loop_rows(out: Path) -> list[dict[str, str]]:
+    with (out / LOOPS_FILE).open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def assert_consistent(out: Path, figures: dict[str, Any]) -> None:
+    """Every frame is processed or skipped; the files agree with the counts in metrics.json."""
+    assert figures["frames"] + figures["frames_skipped"] == FRAMES
+    assert figures["frames_tracked"] + figures["tracking_lost"] == figures["frames"]
+    final, odometry = read_tum(out / TRAJECTORY_FILE), read_tum(out / ODOMETRY_FILE)
+    assert final.num_poses == odometry.num_poses == figures["frames_tracked"]
+    assert (np.diff(final.timestamps) > 0).all()
+    rows = loop_rows(out)
+    assert len(rows) == figures["loops_proposed"]
+    assert sum(int(r["accepted"]) for r in rows) == figures["loops_accepted"]
+    assert all(r["reason"] for r in rows if r["accepted"] == "0")
+    assert not figures["interrupted"]
+
+
+# --- the spec --------------------------------------------------------------------------------------------
+
+
+def test_the_spec_parses_kinds_and_rates() -> None:
+    spec = InjectionSpec.parse("black:0.1, corrupt-image,false-loops:1", seed=4)
+    assert [(f.kind, f.rate) for f in spec.faults] == [
+        ("black", 0.1),
+        ("corrupt-image", 0.05),
+        ("false-loops", 1.0),
+    ]
+    assert spec.seed == 4 and spec.rate("blur") == 0.0
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("blak", "unknown fault 'blak'"),
+        ("black:x", "rate of black is not a number: 'x'"),
+        ("black:0", r"rate of black must be in \(0, 1\]"),
+        ("black:1.5", r"rate of black must be in \(0, 1\]"),
+        ("black,black:0.2", "black given twice"),
+    ],
+)
+def test_a_bad_spec_is_a_clear_error(text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        InjectionSpec.parse(text)
+
+
+def test_the_choice_of_frames_is_seeded() -> None:
+    text = ",".join(f"{kind}:0.05" for kind in FRAME_FAULTS)
+    plans = [[InjectionSpec.parse(text, seed).frame_fault(i) for i in range(FRAMES)] for seed in (1, 1, 2)]
+    assert plans[0] == plans[1] != plans[2]
+    hit = sum(kind is not None for kind in plans[0])
+    assert 0.25 * FRAMES < hit < 0.55 * FRAMES  # 8 faults at 5 %: ~34 %
+
+
+def test_plugin_faults_need_the_plugins(
+    small_loop_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["run", str(small_loop_scene), "--no-loops", "--inject", "false-loops", "--out", str(tmp_path)]
+    assert symbio_main(argv) == 2
+    assert "--inject false-loops: this run has no such plugin" in capsys.readouterr().err
+
+
+# --- frame faults ----------------------------------------------------------------------------------------
+
+
+def test_undecodable_images_are_skipped_counted_and_named(
+    small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    out = tmp_path / "run"
+    figures = replay(small_loop_scene, out, "--inject", "corrupt-image:0.05,truncated-image:0.05")
+    injected = figures["faults_injected_corrupt_image"] + figures["faults_injected_truncated_image"]
+    assert figures["faults_injected_corrupt_image"] > 10 and figures["faults_injected_truncated_image"] > 10
+    assert figures["frames_skipped"] == figures["frames_skipped_undecodable_image"] == injected
+    assert_consistent(out, figures)
+    assert figures["frames_tracked"] == FRAMES - injected and figures["ate_rmse_before"] < 1e-6
+    # The warning names the index file and line of each skipped frame.
+    skipped_lines = [r.getMessage() for r in caplog.records if "image does not decode" in r.getMessage()]
+    assert len(skipped_lines) == injected
+    assert all(f"{small_loop_scene / 'rgb.txt'}:" in line for line in skipped_lines)
+    # No skipped frame has a pose.
+    stamps = open_dataset(small_loop_scene).timestamps
+    posed = set(read_tum(out / TRAJECTORY_FILE).timestamps.round(6))
+    assert len(posed & set(stamps.round(6))) == figures["frames_tracked"]
+
+
+def test_strict_makes_an_undecodable_image_an_error_after_writing_what_exists(
+    small_loop_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    trajectory = f"trajectory={small_loop_scene / 'groundtruth.txt'}"
+    argv = [
+        "run",
+        str(small_loop_scene),
+        "--frontend",
+        "replay",
+        "--set",
+        trajectory,
+        "--no-loops",
+        "--strict",
+    ]
+    assert symbio_main([*argv, "--no-progress", "--inject", "truncated-image:0.05", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{small_loop_scene / 'rgb.txt'}:" in err and "image does not decode" in err
+    figures = json.loads((out / METRICS_FILE).read_text())
+    assert figures["interrupted"] is True and figures["frames"] == figures["frames_tracked"] > 0
+
+
+def test_duplicate_and_backwards_timestamps_are_skipped_and_counted(
+    small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    out = tmp_path / "run"
+    figures = replay(small_loop_scene, out, "--inject", "duplicate-timestamp:0.05,backwards-timestamp:0.05")
+    duplicates, backwards = (
+        figures["faults_injected_duplicate_timestamp"],
+        figures["faults_injected_backwards_timestamp"],
+    )
+    assert duplicates > 10 and backwards > 10
+    # A backwards stamp right after a duplicate may equal the last frame's stamp: the sum is exact.
+    skipped = figures["frames_skipped_duplicate_timestamp"] + figures["frames_skipped_backwards_timestamp"]
+    assert skipped == figures["frames_skipped"] == duplicates + backwards
+    assert (
+        figures["frames_skipped_backwards_timestamp"] > 0
+        and figures["frames_skipped_duplicate_timestamp"] > 0
+    )
+    assert_consistent(out, figures)
+    assert figures["ate_rmse_before"] < 1e-6
+    assert f"{small_loop_scene / 'rgb.txt'}:" in caplog.text and "backwards timestamp" in caplog.text
+
+
+# --- the verification budget ---------------------------------------------------------------------------
+
+
+class Previous:
+    """A loop detector that proposes the previous keyframe, with a high score."""
+
+    name = "previous"
+    threshold = 0.5
+
+    def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        return [LoopCandidate(keyframe.id, keyframe.id - 1, 1.0)] if keyframe.id else []
+
+
+class Stuck:
+    """A verifier that does not answer until ``release`` is set."""
+
+    name = "stuck"
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.calls = 0
+
+    def verify(self, query: Keyframe, match: Keyframe) -> Verification:
+        self.calls += 1
+        self.release.wait()
+        return Verification(query.id, match.id, False, "answered")
+
+
+def test_a_verifier_past_its_budget_rejects_the_candidate_with_reason_timeout() -> None:
+    verifier = Stuck()
+    config = LoopClosingConfig(verify_timeout_s=0.05)
+    closing = LoopClosing(GtsamPoseGraph(BackendConfig()), Previous(), None, verifier, config)  # type: ignore[arg-type]
+
+    def add(k: int) -> None:
+        pose = np.eye(4)
+        pose[0, 3] = 0.1 * k
+        closing.add(TrackResult(k, float(k), "tracking", pose, 0, Keyframe(k, k, float(k), pose)))
+
+    for k in range(3):
+        add(k)
+    reasons = [r.reason for r in closing.loops()]
+    assert reasons == [
+        "timeout: no answer within 0.05 s",
+        "timeout: the verifier is still busy with an earlier candidate",
+    ]
+    assert verifier.calls == 1  # never called while an earlier call runs
+    verifier.release.set()
+    add(3)
+    assert closing.loops()[-1].reason == "answered"
+    assert closing.counters.verifier_timeouts == 2 and closing.counters.verifier_failures == 0
+    assert len(closing.frame_poses(corrected=True)) == 4
+
+
+# --- the full pipeline: mono-vo, symbiolcd2, pycolmap, gtsam -------------------------------------------
+
+
+def posed_frames(scene: Path, out: Path) -> set[int]:
+    """Indices of the frames that have a pose in the run's trajectory."""
+    stamps = open_dataset(scene).timestamps
+    posed = read_tum(out / TRAJECTORY_FILE).timestamps
+    return set(np.flatnonzero(np.isin(stamps.round(6), posed.round(6))).tolist())
+
+
+STARVING = "black:0.03,no-features:0.03,overexposed:0.03,blur:0.03"
+
+
+def test_frames_without_usable_features_are_lost_never_posed(small_loop_scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    figures = symbio_run(small_loop_scene, out, "--no-loops", "--inject", STARVING, "--inject-seed", "2")
+    spec = InjectionSpec.parse(STARVING, 2)
+    plan = {i: spec.frame_fault(i) for i in range(FRAMES)}
+    empty = {i for i, kind in plan.items() if kind in ("black", "no-features")}
+    assert len(empty) == figures["faults_injected_black"] + figures["faults_injected_no_features"] > 20
+    assert figures["faults_injected_overexposed"] > 10 and figures["faults_injected_blur"] > 10
+    assert figures["frames_skipped"] == 0
+    assert_consistent(out, figures)
+    # A black or flat frame gets no pose (it would be invented); tracking resumes after it.
+    assert not empty & posed_frames(small_loop_scene, out)
+    assert figures["tracking_lost"] >= len(empty)
+    assert figures["frames_tracked"] > 0.8 * FRAMES
