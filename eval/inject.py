@@ -27,8 +27,11 @@ Plugin faults wrap the loop-closing components (``Injection.wrap_plugins``):
   keyframe whose GT camera centre is at least ``FALSE_LOOP_MIN_DISTANCE`` from the query's
   (without GT: any keyframe at least ``FALSE_LOOP_MIN_GAP`` keyframes back); the real
   detector still sees every keyframe, its candidates are dropped;
+* ``false-loops-verified``: the same wrong pairs, and the verifier passes each as verified with a
+  plausible constraint (the query at the match's place: identity Sim(3), the covariance of a good
+  verification), as perceptual aliasing would: what is left to reject them is the backend's PCM + GNC;
 * ``verifier-raise``: the verifier raises;
-* ``verifier-timeout``: the verifier answers only after 1.5 x ``loop_closing.verify_timeout_s``
+* ``verifier-timeout``: the verifier answers only after 1.25 x ``loop_closing.verify_timeout_s``
   (set a small budget, e.g. ``--set loop_closing.verify_timeout_s=0.2``, to keep the run short).
 
 How many faults were injected, per kind, is ``faults_injected_<kind>`` in ``metrics.json``.
@@ -57,16 +60,19 @@ IMAGE_FAULTS = ("corrupt-image", "truncated-image", "black", "overexposed", "blu
 TIMESTAMP_FAULTS = ("duplicate-timestamp", "backwards-timestamp")
 FRAME_FAULTS = IMAGE_FAULTS + TIMESTAMP_FAULTS
 OBJECT_FAULTS = ("objects-empty", "objects-raise")
-LOOP_FAULTS = ("loops-raise", "false-loops")
-VERIFIER_FAULTS = ("verifier-raise", "verifier-timeout")
-KINDS = FRAME_FAULTS + OBJECT_FAULTS + LOOP_FAULTS + VERIFIER_FAULTS
+FALSE_LOOP_FAULTS = ("false-loops", "false-loops-verified")
+LOOP_FAULTS = ("loops-raise", *FALSE_LOOP_FAULTS)
+VERIFIER_FAULTS = ("verifier-raise", "verifier-timeout", "false-loops-verified")
+KINDS = tuple(dict.fromkeys(FRAME_FAULTS + OBJECT_FAULTS + LOOP_FAULTS + VERIFIER_FAULTS))
 #: The rate of a fault given without one.
 DEFAULT_RATES = {
     **dict.fromkeys(FRAME_FAULTS, 0.05),
     **dict.fromkeys(OBJECT_FAULTS, 0.3),
     "loops-raise": 0.2,
     "false-loops": 1.0,
-    **dict.fromkeys(VERIFIER_FAULTS, 0.3),
+    "false-loops-verified": 1.0,
+    "verifier-raise": 0.3,
+    "verifier-timeout": 0.3,
 }
 #: A false loop joins keyframes whose GT camera centres are at least this far apart (m) ...
 FALSE_LOOP_MIN_DISTANCE = 2.0
@@ -75,7 +81,10 @@ FALSE_LOOP_MIN_GAP = 10
 #: Score of a false loop, as a multiple of the detector's threshold: far above any threshold.
 FALSE_LOOP_SCORE = 10.0
 #: An injected slow verifier answers after this multiple of the verification budget.
-TIMEOUT_FACTOR = 1.5
+TIMEOUT_FACTOR = 1.25
+#: Sigmas of a fabricated verified false loop: rotation (rad), translation (fraction of the match's
+#: median point depth), log-scale; the pycolmap verifier's floors, i.e. a confident constraint.
+FALSE_LOOP_SIGMAS = (0.003, 0.01, 0.02)
 
 
 class InjectedFault(SymbioError):
@@ -111,6 +120,8 @@ class InjectionSpec:
                 raise ConfigError(f"--inject {text!r}: rate of {kind} must be in (0, 1], got {rate_text}")
             if any(f.kind == kind for f in faults):
                 raise ConfigError(f"--inject {text!r}: {kind} given twice")
+            if kind in FALSE_LOOP_FAULTS and any(f.kind in FALSE_LOOP_FAULTS for f in faults):
+                raise ConfigError(f"--inject {text!r}: give one of {' and '.join(FALSE_LOOP_FAULTS)}")
             faults.append(Fault(kind, rate))
         return cls(tuple(faults), seed)
 
@@ -134,6 +145,8 @@ class Injection:
     def __init__(self, spec: InjectionSpec) -> None:
         self.spec = spec
         self.counts: Counter[str] = Counter()
+        #: (query, match) keyframe ids of the false loops proposed so far.
+        self.false_pairs: set[tuple[int, int]] = set()
 
     def wrap_dataset(self, dataset: Dataset) -> InjectedDataset:
         return InjectedDataset(dataset, self)
@@ -291,13 +304,15 @@ class FaultyLoopDetector:
         if self.injection.hit("loops-raise", keyframe.id):
             raise InjectedFault(f"injected loops-raise on keyframe {keyframe.id}")
         candidates = self.inner.add(keyframe)
-        if self.injection.spec.rate("false-loops") == 0:
+        kind = next((f.kind for f in self.injection.spec.faults if f.kind in FALSE_LOOP_FAULTS), None)
+        if kind is None:
             return candidates
         wrong = [k for k, frame in earlier if self._far(frame, keyframe.frame_index, k, keyframe.id)]
-        if not wrong or not self.injection.hit("false-loops", keyframe.id):
+        if not wrong or not self.injection.hit(kind, keyframe.id):
             return []
-        rng = np.random.default_rng([self.injection.spec.seed, KINDS.index("false-loops"), keyframe.id, 1])
+        rng = np.random.default_rng([self.injection.spec.seed, KINDS.index(kind), keyframe.id, 1])
         match = wrong[int(rng.integers(len(wrong)))]
+        self.injection.false_pairs.add((keyframe.id, match))
         score = FALSE_LOOP_SCORE * max(self.threshold, 0.01)
         return [LoopCandidate(keyframe.id, match, score, {"injected_false_loop": 1.0})]
 
@@ -310,7 +325,8 @@ class FaultyLoopDetector:
 
 
 class FaultyVerifier:
-    """``verifier-raise``: raises on the pair; ``verifier-timeout``: answers after ``delay_s``."""
+    """``verifier-raise``: raises on the pair; ``verifier-timeout``: answers after ``delay_s``;
+    ``false-loops-verified``: passes the injected false pairs with a fabricated constraint."""
 
     def __init__(self, inner: Verifier, injection: Injection, delay_s: float) -> None:
         self.inner = inner
@@ -323,4 +339,23 @@ class FaultyVerifier:
             raise InjectedFault(f"injected verifier-raise on {query.id} -> {match.id}")
         if self.injection.hit("verifier-timeout", query.id, match.id):
             time.sleep(self.delay_s)
+        if (
+            self.injection.spec.rate("false-loops-verified") > 0
+            and (query.id, match.id) in self.injection.false_pairs
+        ):
+            return fabricated_verification(query, match)
         return self.inner.verify(query, match)
+
+
+def fabricated_verification(query: Keyframe, match: Keyframe) -> Verification:
+    """A verified loop claiming ``query`` stands where ``match`` stood (identity Sim(3)), with the
+    covariance of a confident verification (``FALSE_LOOP_SIGMAS``)."""
+    depth = 1.0
+    if match.points3d is not None:
+        depths = match.points3d[:, 2]
+        depths = depths[np.isfinite(depths) & (depths > 0)]
+        depth = float(np.median(depths)) if len(depths) else depth
+    rotation, translation, log_scale = FALSE_LOOP_SIGMAS
+    covariance = np.diag(np.r_[np.full(3, rotation), np.full(3, translation * depth), log_scale] ** 2)
+    inliers = len(match.keypoints) // 2
+    return Verification(query.id, match.id, True, "", len(match.keypoints), inliers, np.eye(4), covariance)

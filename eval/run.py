@@ -15,7 +15,8 @@ Writes to ``--out DIR``:
   ``keyframes_tum.txt``: the loop-closed keyframes. Without loop closing the first equals the second.
 * ``loops.csv``: every verified candidate: query, match (keyframe ids and frames), score, verified,
   inliers, accepted (the backend's final decision), scale, reason.
-* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frontend_failures``,
+* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frames_initialising``
+  (seen while a map initialised and not posed afterwards), ``frontend_failures``,
   ``frames_skipped`` (never given to the frontend: missing or undecodable images, duplicate or
   backwards timestamps) and ``frames_skipped_<cause>`` (per ``SKIP_CAUSES``), ``keyframes``,
   ``segments``, ``fps`` (frames per second of the whole pipeline),
@@ -385,6 +386,7 @@ def run_figures(
         "frames": len(run.results),
         "frames_tracked": len(tracked),
         "tracking_lost": sum(r.state == "lost" for r in run.results),
+        "frames_initialising": sum(r.state == "initialising" and r.pose is None for r in run.results),
         "frontend_failures": run.frontend_failures,
         "frames_skipped": len(dataset.skipped),
         **{

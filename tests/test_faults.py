@@ -54,7 +54,8 @@ def loop_rows(out: Path) -> list[dict[str, str]]:
 def assert_consistent(out: Path, figures: dict[str, Any]) -> None:
     """Every frame is processed or skipped; the files agree with the counts in metrics.json."""
     assert figures["frames"] + figures["frames_skipped"] == FRAMES
-    assert figures["frames_tracked"] + figures["tracking_lost"] == figures["frames"]
+    unposed = figures["tracking_lost"] + figures["frames_initialising"]
+    assert figures["frames_tracked"] + unposed == figures["frames"]
     final, odometry = read_tum(out / TRAJECTORY_FILE), read_tum(out / ODOMETRY_FILE)
     assert final.num_poses == odometry.num_poses == figures["frames_tracked"]
     assert (np.diff(final.timestamps) > 0).all()
@@ -256,3 +257,91 @@ def test_frames_without_usable_features_are_lost_never_posed(small_loop_scene: P
     assert not empty & posed_frames(small_loop_scene, out)
     assert figures["tracking_lost"] >= len(empty)
     assert figures["frames_tracked"] > 0.8 * FRAMES
+
+
+PLUGINS = "objects-raise:0.3,objects-empty:0.3,loops-raise:0.2,verifier-raise:0.3,verifier-timeout:0.3"
+
+
+def test_failing_plugins_cost_one_keyframe_or_candidate_each(small_loop_scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    budget = "loop_closing.verify_timeout_s=0.2"
+    figures = symbio_run(small_loop_scene, out, "--inject", PLUGINS, "--set", budget)
+    assert figures["object_detector_failures"] == figures["faults_injected_objects_raise"] > 5
+    assert figures["faults_injected_objects_empty"] > 5
+    assert figures["loop_detector_failures"] == figures["faults_injected_loops_raise"] > 5
+    rows = loop_rows(out)
+    errors = [r for r in rows if r["reason"].startswith("verifier error")]
+    timeouts = [r for r in rows if r["reason"].startswith("timeout")]
+    assert len(errors) == figures["verifier_failures"] == figures["faults_injected_verifier_raise"] > 0
+    assert all("injected verifier-raise" in r["reason"] for r in errors)
+    # A slow call delays the next candidate at most one budget; under load that one may time out too.
+    assert len(timeouts) == figures["verifier_timeouts"] >= figures["faults_injected_verifier_timeout"] > 0
+    assert not any(int(r["verified"]) for r in errors + timeouts)
+    assert_consistent(out, figures)
+    assert figures["keyframes"] > 50 and figures["frames_tracked"] > 0.8 * FRAMES
+
+
+@pytest.fixture(scope="module")
+def clean_run(small_loop_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return symbio_run(small_loop_scene, tmp_path_factory.mktemp("clean") / "run")
+
+
+def test_false_loops_are_rejected_and_the_map_stays_as_good(
+    small_loop_scene: Path, tmp_path: Path, clean_run: dict[str, Any]
+) -> None:
+    out = tmp_path / "run"
+    figures = symbio_run(small_loop_scene, out, "--inject", "false-loops")
+    assert_consistent(out, figures)
+    rows = loop_rows(out)
+    assert len(rows) == figures["faults_injected_false_loops"] > 50
+    gt = open_dataset(small_loop_scene).gt_poses
+    assert gt is not None
+    for row in rows:  # every proposal joins places at least 2 m apart
+        query, match = gt[int(row["query_frame"])], gt[int(row["match_frame"])]
+        assert np.linalg.norm(query[:3, 3] - match[:3, 3]) >= 2.0
+    assert figures["loops_accepted"] == figures["false_loops_accepted"] == 0
+    assert figures["ate_rmse_after"] == pytest.approx(clean_run["ate_rmse_after"], rel=0.05)
+    assert figures["ate_rmse_after_all"] == pytest.approx(clean_run["ate_rmse_after_all"], rel=0.05)
+
+
+def test_verified_false_loops_are_rejected_by_the_backend() -> None:
+    """Rendered keyframes with exact depth and simulated drift (``test_pipeline``), one map segment:
+    every false pair passes "verification" with a confident identity constraint, as perceptual
+    aliasing would make it; PCM + GNC must keep all of them out, so the loop-closed trajectory stays
+    the odometry's."""
+    from test_pipeline import RenderedObjects, ate, drifting_keyframes
+
+    from eval.inject import FaultyLoopDetector, FaultyVerifier, Injection
+    from eval.synth_keyframes import scene_camera
+    from frontends.synth.render import SceneRenderer
+    from frontends.synth.world import SynthConfig
+    from frontends.types import Frame
+    from lcd.symbiolcd2 import create as create_symbiolcd2
+    from slam_backend.verify import create as create_verifier
+
+    injection = Injection(InjectionSpec.parse("false-loops-verified"))
+    renderer = SceneRenderer(SynthConfig(trajectory="loop", seed=3))
+    objects = RenderedObjects()
+    keyframes = list(drifting_keyframes("loop", 3))
+    centres = np.full((renderer.config.frames, 3), np.nan)
+    for keyframe, _, gt in keyframes:
+        centres[keyframe.frame_index] = gt[:3, 3]
+    closing = LoopClosing(
+        GtsamPoseGraph(BackendConfig()),
+        FaultyLoopDetector(create_symbiolcd2(), injection, centres),
+        objects,
+        FaultyVerifier(create_verifier(scene_camera(renderer)), injection, 0.0),
+    )
+    for keyframe, rendered, _ in keyframes:
+        objects.remember(rendered)
+        result = TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+        closing.add(result, Frame(keyframe.frame_index, keyframe.timestamp, rendered.image))
+    gt = [g for _, _, g in keyframes]
+    # The final estimate first: it runs the GNC pass that is due, which may revise PCM's decisions.
+    after = ate([p for _, _, p in closing.frame_poses(corrected=True)], gt)
+    before = ate([p for _, _, p in closing.frame_poses(corrected=False)], gt)
+    assert after == pytest.approx(before, rel=0.05)
+    loops = closing.loops()
+    assert len(loops) == injection.counts["false-loops-verified"] > 60
+    assert all(r.verified for r in loops)
+    assert not any(r.accepted for r in loops) and all(r.reason == "rejected by the backend" for r in loops)
