@@ -51,9 +51,9 @@ def loop_rows(out: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
-def assert_consistent(out: Path, figures: dict[str, Any]) -> None:
+def assert_consistent(out: Path, figures: dict[str, Any], frames: int = FRAMES) -> None:
     """Every frame is processed or skipped; the files agree with the counts in metrics.json."""
-    assert figures["frames"] + figures["frames_skipped"] == FRAMES
+    assert figures["frames"] + figures["frames_skipped"] == frames
     unposed = figures["tracking_lost"] + figures["frames_initialising"]
     assert figures["frames_tracked"] + unposed == figures["frames"]
     final, odometry = read_tum(out / TRAJECTORY_FILE), read_tum(out / ODOMETRY_FILE)
@@ -244,22 +244,23 @@ STARVING = "black:0.03,no-features:0.03,overexposed:0.03,blur:0.03"
 
 
 def test_frames_without_usable_features_are_lost_never_posed(small_loop_scene: Path, tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    figures = symbio_run(small_loop_scene, out, "--no-loops", "--inject", STARVING, "--inject-seed", "2")
+    out, frames = tmp_path / "run", 400
+    argv = ["--no-loops", "--max-frames", str(frames), "--inject", STARVING, "--inject-seed", "2"]
+    figures = symbio_run(small_loop_scene, out, *argv)
     spec = InjectionSpec.parse(STARVING, 2)
-    plan = {i: spec.frame_fault(i) for i in range(FRAMES)}
+    plan = {i: spec.frame_fault(i) for i in range(frames)}
     empty = {i for i, kind in plan.items() if kind in ("black", "no-features")}
-    assert len(empty) == figures["faults_injected_black"] + figures["faults_injected_no_features"] > 20
-    assert figures["faults_injected_overexposed"] > 10 and figures["faults_injected_blur"] > 10
+    assert len(empty) == figures["faults_injected_black"] + figures["faults_injected_no_features"] > 15
+    assert figures["faults_injected_overexposed"] > 5 and figures["faults_injected_blur"] > 5
     assert figures["frames_skipped"] == 0
-    assert_consistent(out, figures)
+    assert_consistent(out, figures, frames)
     # A black or flat frame gets no pose (it would be invented); tracking resumes after it.
     assert not empty & posed_frames(small_loop_scene, out)
-    assert figures["tracking_lost"] >= len(empty)
-    assert figures["frames_tracked"] > 0.8 * FRAMES
+    assert figures["tracking_lost"] + figures["frames_initialising"] >= len(empty)
+    assert figures["frames_tracked"] > 0.8 * frames
 
 
-PLUGINS = "objects-raise:0.3,objects-empty:0.3,loops-raise:0.2,verifier-raise:0.3,verifier-timeout:0.3"
+PLUGINS = "objects-raise:0.3,objects-empty:0.3,loops-raise:0.2,verifier-raise:0.3,verifier-timeout:0.5"
 
 
 def test_failing_plugins_cost_one_keyframe_or_candidate_each(small_loop_scene: Path, tmp_path: Path) -> None:
