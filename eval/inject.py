@@ -299,15 +299,15 @@ class FaultyLoopDetector:
         self.seen: list[tuple[int, int]] = []
 
     def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
-        earlier = self.seen[:]
+        kind = next((f.kind for f in self.injection.spec.faults if f.kind in FALSE_LOOP_FAULTS), None)
+        far = (k for k, frame in self.seen if self._far(frame, keyframe.frame_index, k, keyframe.id))
+        wrong = list(far) if kind is not None else []
         self.seen.append((keyframe.id, keyframe.frame_index))
         if self.injection.hit("loops-raise", keyframe.id):
             raise InjectedFault(f"injected loops-raise on keyframe {keyframe.id}")
         candidates = self.inner.add(keyframe)
-        kind = next((f.kind for f in self.injection.spec.faults if f.kind in FALSE_LOOP_FAULTS), None)
         if kind is None:
             return candidates
-        wrong = [k for k, frame in earlier if self._far(frame, keyframe.frame_index, k, keyframe.id)]
         if not wrong or not self.injection.hit(kind, keyframe.id):
             return []
         rng = np.random.default_rng([self.injection.spec.seed, KINDS.index(kind), keyframe.id, 1])
