@@ -14,6 +14,7 @@ counted with a warning naming the index file and line, or is an error with ``--s
 
 * ``corrupt-image``: 64 bytes in the middle of the PNG overwritten with noise;
 * ``truncated-image``: the PNG cut after half its bytes;
+* ``wrong-size``: the image at half its width and height (a frame from another camera mode);
 * ``black``, ``overexposed`` (3 x intensity + 100, clipped), ``blur`` (31 px linear motion blur),
   ``no-features`` (the image's mean grey everywhere): images that decode and starve the frontend;
 * ``duplicate-timestamp``, ``backwards-timestamp``: the frame's timestamp set to the previous
@@ -56,7 +57,9 @@ from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from slam_backend.pipeline import LoopClosing
 from slam_backend.verify import Verification, Verifier
 
-IMAGE_FAULTS = ("corrupt-image", "truncated-image", "black", "overexposed", "blur", "no-features")
+IMAGE_FAULTS = (
+    "corrupt-image", "truncated-image", "wrong-size", "black", "overexposed", "blur", "no-features"
+)  # fmt: skip
 TIMESTAMP_FAULTS = ("duplicate-timestamp", "backwards-timestamp")
 FRAME_FAULTS = IMAGE_FAULTS + TIMESTAMP_FAULTS
 OBJECT_FAULTS = ("objects-empty", "objects-raise")
@@ -257,6 +260,8 @@ def faulty_png(kind: str, image: np.ndarray, rng: np.random.Generator) -> bytes:
     elif kind == "blur":
         kernel = np.full((1, 31), 1 / 31, dtype=np.float32)
         image = cv2.filter2D(image, -1, kernel, borderType=cv2.BORDER_REFLECT)
+    elif kind == "wrong-size":
+        image = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
     elif kind == "no-features":
         image = np.full_like(image, round(float(image.mean())))
     ok, encoded = cv2.imencode(".png", image)

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from frontends.base import TrackResult
+from frontends.errors import ConfigError
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from lcd.objects.filtering import MOVABLE_LABELS
@@ -84,6 +85,10 @@ class LoopClosingConfig:
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
+
+    def __post_init__(self) -> None:
+        if not self.verify_timeout_s > 0:
+            raise ConfigError(f"loop_closing: verify_timeout_s must be positive, got {self.verify_timeout_s}")
 
 
 @dataclass(frozen=True)

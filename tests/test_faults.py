@@ -117,15 +117,22 @@ def test_undecodable_images_are_skipped_counted_and_named(
     small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     out = tmp_path / "run"
-    figures = replay(small_loop_scene, out, "--inject", "corrupt-image:0.05,truncated-image:0.05")
-    injected = figures["faults_injected_corrupt_image"] + figures["faults_injected_truncated_image"]
+    figures = replay(
+        small_loop_scene, out, "--inject", "corrupt-image:0.05,truncated-image:0.05,wrong-size:0.05"
+    )
+    undecodable = figures["faults_injected_corrupt_image"] + figures["faults_injected_truncated_image"]
     assert figures["faults_injected_corrupt_image"] > 10 and figures["faults_injected_truncated_image"] > 10
-    assert figures["frames_skipped"] == figures["frames_skipped_undecodable_image"] == injected
+    assert figures["frames_skipped_undecodable_image"] == undecodable
+    assert figures["frames_skipped_wrong_image_size"] == figures["faults_injected_wrong_size"] > 10
+    injected = undecodable + figures["faults_injected_wrong_size"]
+    assert figures["frames_skipped"] == injected
     assert_consistent(out, figures)
     assert figures["frames_tracked"] == FRAMES - injected and figures["ate_rmse_before"] < 1e-6
     # The warning names the index file and line of each skipped frame.
-    skipped_lines = [r.getMessage() for r in caplog.records if "image does not decode" in r.getMessage()]
+    messages = [r.getMessage() for r in caplog.records]
+    skipped_lines = [m for m in messages if "image does not decode" in m or "the camera's calibration" in m]
     assert len(skipped_lines) == injected
+    assert any("image is 160x120, the camera's calibration is for 320x240" in m for m in messages)
     assert all(f"{small_loop_scene / 'rgb.txt'}:" in line for line in skipped_lines)
     # No skipped frame has a pose.
     stamps = open_dataset(small_loop_scene).timestamps
@@ -205,9 +212,14 @@ class Stuck:
         return Verification(query.id, match.id, False, "answered")
 
 
+def test_the_budget_must_be_positive() -> None:
+    with pytest.raises(ConfigError, match="verify_timeout_s must be positive"):
+        LoopClosingConfig(verify_timeout_s=0)
+
+
 def test_a_verifier_past_its_budget_rejects_the_candidate_with_reason_timeout() -> None:
     verifier = Stuck()
-    config = LoopClosingConfig(verify_timeout_s=0.05)
+    config = LoopClosingConfig(verify_timeout_s=0.5)  # once released, a late call returns well within this
     closing = LoopClosing(GtsamPoseGraph(BackendConfig()), Previous(), None, verifier, config)  # type: ignore[arg-type]
 
     def add(k: int) -> None:
@@ -219,7 +231,7 @@ def test_a_verifier_past_its_budget_rejects_the_candidate_with_reason_timeout() 
         add(k)
     reasons = [r.reason for r in closing.loops()]
     assert reasons == [
-        "timeout: no answer within 0.05 s",
+        "timeout: no answer within 0.5 s",
         "timeout: the verifier is still busy with an earlier candidate",
     ]
     assert verifier.calls == 1  # never called while an earlier call runs

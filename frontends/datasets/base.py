@@ -1,7 +1,8 @@
 """The dataset model every reader produces: a streamed image sequence with its camera.
 
 Images are decoded one at a time while iterating, never all held in memory. An image that is
-missing or fails to decode is skipped with a warning and recorded in ``Dataset.skipped`` (with the
+missing, fails to decode or has another size than the camera's is skipped with a warning and
+recorded in ``Dataset.skipped`` (with the
 index file and line that listed it); ``strict=True`` turns that into a ``DatasetError``. The
 built-in readers reject index files whose timestamps do not increase when opening them; a frame
 whose timestamp is not after the previous frame's (a reader that does not check, e.g. a plugin) is
@@ -54,6 +55,7 @@ class SkippedFrame:
 SKIP_CAUSES = (
     "missing image",
     "undecodable image",
+    "wrong image size",
     "duplicate timestamp",
     "backwards timestamp",
     "video ended",
@@ -146,6 +148,12 @@ class Dataset:
             reason = "missing image file" if missing else "image does not decode"
             cause = "missing image" if missing else "undecodable image"
             self._skip(index, entry.where(), f"{reason}: {entry.path}", cause)
+        elif (image.shape[1], image.shape[0]) != (self.camera.width, self.camera.height):
+            size = f"{image.shape[1]}x{image.shape[0]}"
+            expected = f"{self.camera.width}x{self.camera.height}"
+            reason = f"image is {size}, the camera's calibration is for {expected}: {entry.path}"
+            self._skip(index, entry.where(), reason, "wrong image size")
+            return None
         return image
 
     def _skip(self, index: int, where: str, reason: str, cause: str) -> None:
