@@ -140,6 +140,25 @@ def test_undecodable_images_are_skipped_counted_and_named(
     assert len(posed & set(stamps.round(6))) == figures["frames_tracked"]
 
 
+def test_missing_images_are_skipped_counted_and_named(small_loop_scene: Path, tmp_path: Path) -> None:
+    scene = tmp_path / "scene"  # the scene's rgb.txt, listing absolute paths, two of them absent
+    scene.mkdir()
+    for name in ("groundtruth.txt", "intrinsics.yaml"):
+        (scene / name).write_bytes((small_loop_scene / name).read_bytes())
+    lines = []
+    for line in (small_loop_scene / "rgb.txt").read_text().splitlines():
+        stamp, _, name = line.partition(" ")
+        lines.append(line if line.startswith("#") else f"{stamp} {small_loop_scene / name}")
+    data = [k for k, line in enumerate(lines) if not line.startswith("#")]
+    for k in (data[10], data[300]):
+        lines[k] = lines[k].replace(".png", "-gone.png")
+    (scene / "rgb.txt").write_text("\n".join(lines) + "\n")
+    figures = replay(scene, tmp_path / "run")
+    assert figures["frames_skipped"] == figures["frames_skipped_missing_image"] == 2
+    assert_consistent(tmp_path / "run", figures)
+    assert figures["frames_tracked"] == FRAMES - 2 and figures["ate_rmse_before"] < 1e-6
+
+
 def test_strict_makes_an_undecodable_image_an_error_after_writing_what_exists(
     small_loop_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
