@@ -15,8 +15,11 @@ Writes to ``--out DIR``:
   ``keyframes_tum.txt``: the loop-closed keyframes. Without loop closing the first equals the second.
 * ``loops.csv``: every verified candidate: query, match (keyframe ids and frames), score, verified,
   inliers, accepted (the backend's final decision), scale, reason.
-* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frontend_failures``,
-  ``images_skipped``, ``keyframes``, ``segments``, ``fps`` (frames per second of the whole pipeline),
+* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frames_initialising``
+  (seen while a map initialised and not posed afterwards), ``frontend_failures``,
+  ``frames_skipped`` (never given to the frontend: missing or undecodable images, duplicate or
+  backwards timestamps) and ``frames_skipped_<cause>`` (per ``SKIP_CAUSES``), ``keyframes``,
+  ``segments``, ``fps`` (frames per second of the whole pipeline),
   ``ms_per_frame_<stage>`` (frontend, objects, loop_detector, verifier, backend), ``ate_rmse_before`` /
   ``ate_rmse_after`` (evo APE translation RMSE after Sim(3) Umeyama alignment to the GT, odometry vs
   loop-closed, over the same frames: those of segment ``ate_segment``, the one with most tracked
@@ -24,11 +27,15 @@ Writes to ``--out DIR``:
   ``rpe_rmse_before`` / ``rpe_rmse_after`` (evo RPE translation over 1 s, on the aligned
   trajectories), ``loops_proposed`` (candidates verified), ``loops_verified``, ``loops_accepted``,
   ``false_loops_accepted``, ``lcd_precision`` / ``lcd_recall`` of the accepted loops against the GT
-  loop pairs (``--tolerance`` frames), ``path_length`` (GT, m) and ``interrupted``. Figures that need
-  GT are null without it.
+  loop pairs (``--tolerance`` frames), ``path_length`` (GT, m), ``interrupted``, the plugin
+  failures (``object_detector_failures``, ``loop_detector_failures``, ``verifier_failures``,
+  ``verifier_timeouts``) and, with ``--inject``, ``faults_injected_<kind>`` (per kind). Figures
+  that need GT are null without it.
 
 A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
-failing object/loop detectors and verifiers cost one keyframe or candidate (counted). When the run
+failing object/loop detectors and verifiers cost one keyframe or candidate (counted), a verifier
+past ``loop_closing.verify_timeout_s`` its candidate (reason "timeout"). ``--inject`` injects
+faults to try this (``eval.inject``; README "What we test against"). When the run
 stops early (Ctrl-C, an unreadable image with --strict), whatever was processed is written before
 the error is re-raised.
 
@@ -37,6 +44,7 @@ Examples:
   symbio run scene --no-loops --out run_vo                       # odometry only
   symbio run scene --detector vbow --set detector.threshold=0.1 --out run_vbow
   symbio run scene --frontend replay --set trajectory=scene/groundtruth.txt --no-loops --out run_gt
+  symbio run scene --inject corrupt-image:0.05,black:0.02,objects-raise --inject-seed 1 --out run_faults
   symbio run kitti/sequences/06 --frontend replay --set trajectory=orb.txt --set format=kitti \\
       --no-loops --out run_orb
 """
@@ -61,6 +69,7 @@ from evo.core.geometry import GeometryException
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
+from eval.inject import KINDS, InjectedDataset, Injection, InjectionSpec
 from eval.lcd_eval import default_object_detector
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
 from eval.report import REPORT_FILE, aligned, with_ground_truth, write_plots, write_report
@@ -69,6 +78,7 @@ from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, MaskingFron
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import config_to_dict, load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
+from frontends.datasets.base import SKIP_CAUSES
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
 from frontends.trajectory_io import write_trajectory
@@ -376,8 +386,13 @@ def run_figures(
         "frames": len(run.results),
         "frames_tracked": len(tracked),
         "tracking_lost": sum(r.state == "lost" for r in run.results),
+        "frames_initialising": sum(r.state == "initialising" and r.pose is None for r in run.results),
         "frontend_failures": run.frontend_failures,
-        "images_skipped": len(dataset.skipped),
+        "frames_skipped": len(dataset.skipped),
+        **{
+            f"frames_skipped_{cause.replace(' ', '_')}": sum(s.cause == cause for s in dataset.skipped)
+            for cause in SKIP_CAUSES
+        },
         "keyframes": len(keyframes),
         "segments": len(segments),
         "fps": len(run.results) / run.total_seconds if run.total_seconds > 0 else None,
@@ -397,6 +412,8 @@ def run_figures(
         "object_detector_failures": counters.object_detector_failures,
         "loop_detector_failures": counters.loop_detector_failures,
         "verifier_failures": counters.verifier_failures,
+        "verifier_timeouts": counters.verifier_timeouts,
+        **(dataset.injection.figures() if isinstance(dataset, InjectedDataset) else {}),
         "interrupted": run.interrupted,
     }
     figures.update(loop_truth(dataset, loops, keyframes, tolerance))
@@ -528,6 +545,15 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N frames")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--inject",
+        metavar="KIND[:RATE],...",
+        help="debug: inject faults into the run, RATE = fraction of frames or plugin calls hit. Kinds: "
+        f"{', '.join(KINDS)} (see eval/inject.py and the README, 'What we test against')",
+    )
+    parser.add_argument(
+        "--inject-seed", type=int, default=0, metavar="N", help="seed of the --inject choices (default 0)"
+    )
     add_json_option(parser)
     parser.set_defaults(handler=run_command)
 
@@ -538,6 +564,8 @@ def describe(components: Components, closing: LoopClosing, args: argparse.Namesp
         "dataset": str(args.path),
         "no_loops": args.no_loops,
         "tolerance": args.tolerance,
+        "inject": args.inject,
+        "inject_seed": args.inject_seed if args.inject else None,
         "components": {
             f.name: getattr(components, f.name) for f in fields(Components) if f.name != "overrides"
         },
@@ -557,11 +585,16 @@ def run_command(args: argparse.Namespace) -> int:
         "backend": args.backend,
     }
     components = load_components(args.config, args.overrides, names)
-    dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
+    injection = Injection(InjectionSpec.parse(args.inject, args.inject_seed)) if args.inject else None
+    dataset: Dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
+    if injection is not None:
+        dataset = injection.wrap_dataset(dataset)
     frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
     for note in dataset.notes:
         print(f"note: {note}")
     closing = build_loop_closing(dataset, None if args.no_loops else components)
+    if injection is not None:
+        injection.wrap_plugins(closing, dataset)
     viewer = (
         RerunViewer(args.out / RRD_FILE, args.viewer_connect, camera=dataset.camera)
         if args.viewer == "rerun"

@@ -14,7 +14,8 @@ With no accepted loop the two coincide, so "the trajectory is unchanged" is a me
 Per keyframe: objects (the object detector sees the keyframe's image; a failing detector costs the
 keyframe its objects, logged and counted), loop candidates (a failing detector costs the query its
 candidates), verification of the best ``max_verifications`` candidates at or above the detector's
-threshold (a raising verifier counts as a rejection with the error as reason), and one backend event
+threshold (a raising verifier counts as a rejection with the error as reason; one that takes longer
+than ``verify_timeout_s`` as a rejection with reason "timeout ..."), and one backend event
 with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
 the final decision; ``loops()`` reports the current decision of every candidate.
 
@@ -26,6 +27,7 @@ that reaches back across the gap pulls the segment into place.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Mapping
@@ -35,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from frontends.base import TrackResult
+from frontends.errors import ConfigError
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from lcd.objects.filtering import MOVABLE_LABELS
@@ -72,11 +75,20 @@ class LoopClosingConfig:
     floor_rotation_sigma: float = 1e-4
     floor_translation_sigma: float = 1e-3
     floor_log_scale_sigma: float = 1e-3
+    #: Wall-clock budget of one verification (s; a verification costs ~40 ms). The verifier runs on
+    #: a worker thread; past the budget the candidate is rejected with reason "timeout ..." and the
+    #: run goes on. While a timed-out call is still running, the next candidate waits for it at most
+    #: one budget (the verifier is never called concurrently), else it is rejected the same way.
+    verify_timeout_s: float = 30.0
     #: Hand the backend's estimates to a frontend that can move its map (``CorrectableFrontend``)
     #: after every accepted loop, so that tracking continues in the corrected map.
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
+
+    def __post_init__(self) -> None:
+        if not self.verify_timeout_s > 0:
+            raise ConfigError(f"loop_closing: verify_timeout_s must be positive, got {self.verify_timeout_s}")
 
 
 @dataclass(frozen=True)
@@ -110,6 +122,7 @@ class LoopClosingCounters:
     object_detector_failures: int = 0
     loop_detector_failures: int = 0
     verifier_failures: int = 0
+    verifier_timeouts: int = 0
     seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
 
 
@@ -162,6 +175,8 @@ class LoopClosing:
         #: Detections of frames the frontend asked about (``movable_boxes``), reused for keyframes.
         self._detections: dict[int, tuple[DetectedObject, ...]] = {}
         self._previous: Keyframe | None = None
+        #: A verification that ran past its budget and has not returned yet.
+        self._late_verification: threading.Thread | None = None
 
     # -- input -------------------------------------------------------------------------------------
 
@@ -343,7 +358,7 @@ class LoopClosing:
             return Verification(candidate.query, candidate.match, False, "no verifier")
         start = time.perf_counter()
         try:
-            return self.verifier.verify(keyframe, self._keyframes[candidate.match])
+            return self._verify_in_budget(self.verifier, keyframe, self._keyframes[candidate.match])
         except Exception as exc:  # plugin boundary: a raising verifier rejects this candidate only
             self.counters.verifier_failures += 1
             log.warning(
@@ -356,6 +371,41 @@ class LoopClosing:
             return Verification(candidate.query, candidate.match, False, f"verifier error: {exc!r}")
         finally:
             self.counters.seconds["verifier"] += time.perf_counter() - start
+
+    def _verify_in_budget(self, verifier: Verifier, query: Keyframe, match: Keyframe) -> Verification:
+        """``verifier.verify`` on a worker thread, given ``verify_timeout_s``; raises what it raises."""
+        budget = self.config.verify_timeout_s
+        late = self._late_verification
+        if late is not None:
+            late.join(budget)
+            if late.is_alive():
+                return self._timed_out(
+                    query.id, match.id, "the verifier is still busy with an earlier candidate"
+                )
+            self._late_verification = None
+        outcome: list[Verification | Exception] = []
+
+        def work() -> None:
+            try:
+                outcome.append(verifier.verify(query, match))
+            except Exception as exc:  # handed to the caller's plugin boundary
+                outcome.append(exc)
+
+        # A daemon thread: a verifier that never returns cannot keep the process alive at exit.
+        worker = threading.Thread(target=work, name=f"verify {query.id}->{match.id}", daemon=True)
+        worker.start()
+        worker.join(budget)
+        if worker.is_alive():
+            self._late_verification = worker
+            return self._timed_out(query.id, match.id, f"no answer within {budget:g} s")
+        if isinstance(outcome[0], Exception):
+            raise outcome[0]
+        return outcome[0]
+
+    def _timed_out(self, query: int, match: int, why: str) -> Verification:
+        self.counters.verifier_timeouts += 1
+        log.warning("verifier timeout on %d -> %d: %s; candidate rejected", query, match, why)
+        return Verification(query, match, False, f"timeout: {why}")
 
     # -- output ------------------------------------------------------------------------------------
 

@@ -1,8 +1,12 @@
 """The dataset model every reader produces: a streamed image sequence with its camera.
 
 Images are decoded one at a time while iterating, never all held in memory. An image that is
-missing or fails to decode is skipped with a warning and recorded in ``Dataset.skipped`` (with the
-index file and line that listed it); ``strict=True`` turns that into a ``DatasetError``.
+missing, fails to decode or has another size than the camera's is skipped with a warning and
+recorded in ``Dataset.skipped`` (with the
+index file and line that listed it); ``strict=True`` turns that into a ``DatasetError``. The
+built-in readers reject index files whose timestamps do not increase when opening them; a frame
+whose timestamp is not after the previous frame's (a reader that does not check, e.g. a plugin) is
+skipped and recorded the same way, so a frontend never sees time run backwards.
 """
 
 from __future__ import annotations
@@ -44,6 +48,18 @@ class SkippedFrame:
     index: int
     where: str
     reason: str
+    #: The reason's category, for counting: one of ``SKIP_CAUSES``.
+    cause: str
+
+
+SKIP_CAUSES = (
+    "missing image",
+    "undecodable image",
+    "wrong image size",
+    "duplicate timestamp",
+    "backwards timestamp",
+    "video ended",
+)
 
 
 def decode_image(path: Path) -> np.ndarray | None:
@@ -128,21 +144,41 @@ class Dataset:
         entry = self.entries[index]
         image = decode_image(entry.path)
         if image is None:
-            reason = "missing image file" if not entry.path.exists() else "image does not decode"
-            self._skip(index, entry.where(), f"{reason}: {entry.path}")
+            missing = not entry.path.exists()
+            reason = "missing image file" if missing else "image does not decode"
+            cause = "missing image" if missing else "undecodable image"
+            self._skip(index, entry.where(), f"{reason}: {entry.path}", cause)
+        elif (image.shape[1], image.shape[0]) != (self.camera.width, self.camera.height):
+            size = f"{image.shape[1]}x{image.shape[0]}"
+            expected = f"{self.camera.width}x{self.camera.height}"
+            reason = f"image is {size}, the camera's calibration is for {expected}: {entry.path}"
+            self._skip(index, entry.where(), reason, "wrong image size")
+            return None
         return image
 
-    def _skip(self, index: int, where: str, reason: str) -> None:
+    def _skip(self, index: int, where: str, reason: str, cause: str) -> None:
         if self.strict:
             raise DatasetError(where, reason)
         log.warning("%s: %s; frame %d skipped", where, reason, index)
-        self.skipped.append(SkippedFrame(index, where, reason))
+        self.skipped.append(SkippedFrame(index, where, reason, cause))
 
     def __iter__(self) -> Iterator[Frame]:
+        previous: tuple[int, float] | None = None  # (index, timestamp) of the last frame given out
         for index in range(len(self)):
+            stamp = self.entries[index].timestamp
+            if previous is not None and stamp <= previous[1]:
+                cause = "duplicate timestamp" if stamp == previous[1] else "backwards timestamp"
+                self._skip(
+                    index,
+                    self.entries[index].where(),
+                    f"{cause} {stamp!r} (frame {previous[0]} has {previous[1]!r})",
+                    cause,
+                )
+                continue
             image = self.read_image(index)
             if image is None:
                 continue
+            previous = (index, stamp)
             yield self._frame(index, image)
 
     def _frame(self, index: int, image: np.ndarray) -> Frame:

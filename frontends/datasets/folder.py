@@ -165,7 +165,9 @@ class VideoDataset(Dataset):
         if self.strict:
             raise DatasetError(self.root, reason)
         log.warning("%s: %s; the rest are skipped", self.root, reason)
-        self.skipped += [SkippedFrame(i, f"{self.root} frame {i}", reason) for i in range(first, len(self))]
+        self.skipped += [
+            SkippedFrame(i, f"{self.root} frame {i}", reason, "video ended") for i in range(first, len(self))
+        ]
 
     def read_image(self, index: int) -> np.ndarray | None:
         """Frame ``index`` by seeking (slow; see the module notes); a failure is recorded as skipped."""
@@ -176,6 +178,6 @@ class VideoDataset(Dataset):
         finally:
             capture.release()
         if not ok or image is None:
-            self._skip(index, f"{self.root} frame {index}", "frame does not decode")
+            self._skip(index, f"{self.root} frame {index}", "frame does not decode", "undecodable image")
             return None
         return image
