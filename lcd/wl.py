@@ -73,6 +73,16 @@ class _Buffer:
     def view(self) -> np.ndarray:
         return self._data[: self._size]
 
+    def __getstate__(self) -> dict[str, object]:
+        """Pickles the used part only (half of the capacity is empty after a growth step)."""
+        return {"data": self.view(), "capacity": len(self._data)}
+
+    def __setstate__(self, state: dict[str, np.ndarray | int]) -> None:
+        data = np.asarray(state["data"])
+        self._data = np.zeros(int(state["capacity"]), dtype=data.dtype)
+        self._data[: len(data)] = data
+        self._size = len(data)
+
 
 def _ranges(starts: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(segment of each element, index of each element) of the ranges ``starts[i] + 0..lengths[i]-1``."""
