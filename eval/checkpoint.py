@@ -37,6 +37,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import io
+import itertools
 import json
 import logging
 import os
@@ -53,6 +54,7 @@ import numpy as np
 
 from frontends.base import Frontend
 from frontends.datasets import Dataset
+from frontends.datasets.base import SkippedFrame
 from frontends.errors import InputFileError
 from frontends.types import Frame
 from slam_backend.pipeline import LoopClosing
@@ -79,6 +81,8 @@ class RunState:
     run: Any
     #: Index of the first frame not processed yet.
     next_index: int
+    #: ``Dataset.skipped`` when the checkpoint was made (frames that did not decode).
+    skipped: list[SkippedFrame]
 
 
 def _orb_parameters(orb: Any) -> dict[str, Any]:
@@ -124,6 +128,21 @@ class FrameImages:
         for frame in frames:
             self.remember(frame.image, frame.index)
             yield frame
+
+
+def reads_image_files(dataset: Dataset) -> bool:
+    """Whether ``dataset`` is a plain reader of image files: frame i is ``read_image(i)`` exactly,
+    so a checkpoint may refer to frame images and resuming may start at a frame index. Video
+    (seeking is not exact for every codec) and readers or wrappers that override iteration or
+    reading (they may change the images) are not: their images are stored and the frames before
+    the resume point are read and dropped."""
+    kind = type(dataset)
+    return (
+        isinstance(dataset, Dataset)
+        and kind.__iter__ is Dataset.__iter__
+        and kind.frames is Dataset.frames
+        and kind.read_image is Dataset.read_image
+    )
 
 
 def _frame_image(index: int) -> np.ndarray:
@@ -239,12 +258,17 @@ class Checkpointer:
         self.spec = dict(spec)
         self.fingerprint = dataset_fingerprint(dataset)
         self.images = FrameImages()
+        self.dataset = dataset
+
+    def track(self, frames: Iterable[Frame]) -> Iterable[Frame]:
+        """``frames``, with their images remembered when the dataset reads image files."""
+        return self.images.track(frames) if reads_image_files(self.dataset) else frames
 
     def after_frame(self, frame: Frame, frontend: Frontend, closing: LoopClosing, run: Any) -> None:
         """Save when the number of frames processed is a multiple of ``every``."""
         done = len(run.results)
         if done % self.every == 0:
-            self.save(RunState(frontend, closing, run, frame.index + 1))
+            self.save(RunState(frontend, closing, run, frame.index + 1, list(self.dataset.skipped)))
 
     def save(self, state: RunState) -> None:
         """Write ``state`` (the run's ``checkpoints``, ``checkpoint_seconds``, ``checkpoint_bytes``
@@ -255,6 +279,7 @@ class Checkpointer:
                 "frontend": state.frontend,
                 "closing": state.closing,
                 "run": state.run,
+                "skipped": state.skipped,
             },
             self.images,
         )
@@ -290,7 +315,9 @@ def read_header(out_dir: Path) -> dict[str, Any]:
         header = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise CheckpointError(
-            path, "no checkpoint here (was the run started with --checkpoint-every?)"
+            path,
+            "no checkpoint: the run was started without --checkpoint-every, or it finished (its "
+            "checkpoint is deleted once its outputs are written)",
         ) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CheckpointError(path, f"corrupt checkpoint header ({exc})") from None
@@ -341,9 +368,18 @@ def load_state(header: Mapping[str, Any], out_dir: Path, dataset: Dataset, image
         raise
     except Exception as exc:  # any unpickling failure means the file cannot be resumed from
         raise CheckpointError(path, f"checkpoint does not load ({exc!r})") from None
-    return RunState(state["frontend"], state["closing"], state["run"], int(header["next_index"]))
+    return RunState(
+        state["frontend"], state["closing"], state["run"], int(header["next_index"]), state["skipped"]
+    )
 
 
-def remaining(frames: Iterable[Frame], next_index: int) -> Iterator[Frame]:
-    """The frames of a resumed stream that the checkpointed run had not processed yet."""
-    return (frame for frame in frames if frame.index >= next_index)
+def remaining(dataset: Dataset, max_frames: int | None, resume: RunState) -> Iterable[Frame]:
+    """The frames of ``islice(dataset, max_frames)`` that the checkpointed run had not processed:
+    read from the resume point on (with the frames skipped before it restored to
+    ``dataset.skipped``) when the dataset reads image files, else read from the start and dropped."""
+    if reads_image_files(dataset):
+        dataset.skipped = list(resume.skipped)
+        left = None if max_frames is None else max(max_frames - len(resume.run.results), 0)
+        return itertools.islice(dataset.frames(resume.next_index), left)
+    frames = itertools.islice(dataset, max_frames)
+    return (frame for frame in frames if frame.index >= resume.next_index)

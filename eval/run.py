@@ -27,6 +27,13 @@ Writes to ``--out DIR``:
   loop pairs (``--tolerance`` frames), ``path_length`` (GT, m) and ``interrupted``. Figures that need
   GT are null without it.
 
+Checkpoint and resume: ``--checkpoint-every N`` saves the whole run state to ``DIR/checkpoint.json``
+and ``DIR/checkpoint-FFFFFF.pkl`` every N frames (atomically; see ``eval.checkpoint``); after a
+crash or ``kill -9``, ``symbio run --resume DIR`` continues with the stored dataset and options and
+writes the outputs an uninterrupted run writes, bit for bit. While ``checkpoint.json`` exists the
+run is unfinished: a checkpointed run deletes earlier outputs in DIR when it starts or resumes, and
+its checkpoint once its outputs are written.
+
 A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
 failing object/loop detectors and verifiers cost one keyframe or candidate (counted). When the run
 stops early (Ctrl-C, an unreadable image with --strict), whatever was processed is written before
@@ -37,6 +44,7 @@ Examples:
   symbio run scene --no-loops --out run_vo                       # odometry only
   symbio run scene --detector vbow --set detector.threshold=0.1 --out run_vbow
   symbio run scene --frontend replay --set trajectory=scene/groundtruth.txt --no-loops --out run_gt
+  symbio run scene --checkpoint-every 50 --out run                # after a crash: symbio run --resume run
   symbio run kitti/sequences/06 --frontend replay --set trajectory=orb.txt --set format=kitti \\
       --no-loops --out run_orb
 """
@@ -296,11 +304,13 @@ def run_odometry(
         attach_viewer(viewer, closing)
     run = PipelineRun() if resume is None else resume.run
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
-    stream: Iterable[Frame] = itertools.islice(dataset, max_frames)
-    if resume is not None:
-        stream = checkpoint.remaining(stream, resume.next_index)
+    stream: Iterable[Frame] = (
+        itertools.islice(dataset, max_frames)
+        if resume is None
+        else checkpoint.remaining(dataset, max_frames, resume)
+    )
     if checkpointer is not None:
-        stream = checkpointer.images.track(stream)
+        stream = checkpointer.track(stream)
     after_frame = (
         (lambda frame: checkpointer.after_frame(frame, frontend, closing, run)) if checkpointer else None
     )
@@ -614,7 +624,7 @@ def resumed_options(
     stored = header["spec"]
     given = checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS)
     for key, value in given.items():
-        if key == "components" or value == checkpoint.run_spec({key: default(key)}, ())[key]:
+        if value == checkpoint.run_spec({key: default(key)}, ())[key]:
             continue  # not given on this command line
         if stored.get(key) != value:
             option = "DATASET" if key == "path" else "--" + key.replace("_", "-")

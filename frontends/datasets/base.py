@@ -139,7 +139,12 @@ class Dataset:
         self.skipped.append(SkippedFrame(index, where, reason))
 
     def __iter__(self) -> Iterator[Frame]:
-        for index in range(len(self)):
+        return self.frames()
+
+    def frames(self, start: int = 0) -> Iterator[Frame]:
+        """The frames from index ``start`` on, as iterating yields them (readers that override
+        ``__iter__``, e.g. video, stream from the start only)."""
+        for index in range(start, len(self)):
             image = self.read_image(index)
             if image is None:
                 continue
