@@ -4,19 +4,21 @@ Renders the demo scene (``symbio demo``'s seeded 600-frame loop), runs the demo'
 (``symbio run`` with the oracle object detector at the demo's miss rate) once uninterrupted without
 checkpoints (the reference) and once with ``--checkpoint-every N`` (its outputs must equal the
 reference's; its metrics give the checkpoint size and ms per save), then ``--kills`` times: starts the
-checkpointed run, waits for its first checkpoint, kills it with SIGKILL after a seeded uniform delay
-(up to 90 % of the reference's remaining run time), resumes it and compares trajectory_tum.txt,
-trajectory_odometry_tum.txt, keyframes_tum.txt and loops.csv byte for byte with the reference.
+checkpointed run, kills it with SIGKILL at a seeded random point (after a random checkpoint, plus a
+random fraction of a checkpoint interval: see ``kill_and_resume``), resumes it and compares
+trajectory_tum.txt, trajectory_odometry_tum.txt, keyframes_tum.txt and loops.csv byte for byte with
+the reference.
 
   python -m eval.bench_resume --out bench_resume_out --kills 5 --seed 0 --every 50 --json resume.json
 
-Exit status 1 if any resumed run differs from the reference.
+Exit status 1 unless every round was killed and its resumed outputs equal the reference's.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -54,37 +56,48 @@ def identical(a: Path, b: Path) -> bool:
     return all((a / name).read_bytes() == (b / name).read_bytes() for name in COMPARED)
 
 
+def header_frames(out: Path) -> int:
+    """Frames of the checkpoint in ``out`` (0 without one; a header being replaced reads as 0)."""
+    try:
+        return int(json.loads((out / HEADER_FILE).read_text())["frames"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
 def kill_and_resume(
-    scene: Path, out: Path, every: int, reference: Path, seconds: float, rng: np.random.Generator
+    scene: Path, out: Path, every: int, frames: int, reference: Path, rng: np.random.Generator
 ) -> dict[str, Any]:
-    """One checkpointed run killed after its first checkpoint plus a random delay, then resumed."""
-    process = subprocess.Popen(
-        run_command(scene, out, every), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    """One checkpointed run killed at a random point, resumed, and compared with ``reference``.
+
+    The point: once the checkpoint after a random multiple of ``every`` frames (below the last)
+    exists, plus a random fraction of the mean time per checkpoint interval so far; the kill lands
+    anywhere between two checkpoints (also during a save) whatever the machine's load."""
+    target = every * int(rng.integers(1, max(frames // every, 2)))
+    fraction = float(rng.uniform(0.0, 1.0))
+    command = run_command(scene, out, every)
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     start = time.perf_counter()
-    while not (out / HEADER_FILE).exists() and process.poll() is None:
-        time.sleep(0.05)
-    first = time.perf_counter() - start
-    delay = float(rng.uniform(0.0, 0.9 * max(seconds - first, 0.0)))
-    time.sleep(delay)
+    while process.poll() is None and header_frames(out) < target:
+        time.sleep(0.02)
+    time.sleep(fraction * (time.perf_counter() - start) / (target // every))
     killed = process.poll() is None
     if killed:
         process.send_signal(signal.SIGKILL)
     process.wait()
-    frames = json.loads((out / HEADER_FILE).read_text())["frames"] if (out / HEADER_FILE).exists() else None
     resume_start = time.perf_counter()
     resumed = subprocess.run(
         [sys.executable, "-m", "eval.cli", "run", "--resume", str(out), "--no-progress"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
+        capture_output=True,
         text=True,
     )
     if resumed.returncode != 0:
         print(resumed.stderr[-2000:], file=sys.stderr)
+    found = re.search(r"resuming .* after (\d+) frames", resumed.stdout)
     return {
         "killed": killed,
-        "kill_after_s": round(first + delay, 2),
-        "checkpoint_frames": frames,
+        "kill_after_checkpoint": target,
+        "kill_fraction_of_interval": round(fraction, 3),
+        "resumed_from_frame": int(found.group(1)) if found else None,
         "resume_seconds": round(time.perf_counter() - resume_start, 1),
         "identical": resumed.returncode == 0 and identical(out, reference),
     }
@@ -116,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     pipeline_seconds = metrics["frames"] / metrics["fps"]
     rng = np.random.default_rng(args.seed)
     rounds = [
-        kill_and_resume(scene, args.out / f"kill_{i}", args.every, reference, seconds, rng)
+        kill_and_resume(scene, args.out / f"kill_{i}", args.every, metrics["frames"], reference, rng)
         for i in range(args.kills)
     ]
     figures = {
@@ -130,23 +143,24 @@ def main(argv: list[str] | None = None) -> int:
         "ms_per_checkpoint": metrics["ms_per_checkpoint"],
         "checkpoint_mb_last": metrics["checkpoint_bytes"] / 1e6,
         "checkpoint_overhead_percent": 100 * save_seconds / pipeline_seconds,
-        "kills": len(rounds),
-        "kills_identical": sum(r["identical"] for r in rounds),
+        "kills": sum(r["killed"] for r in rounds),
+        "kills_identical": sum(r["killed"] and r["identical"] for r in rounds),
     }
     for key, value in figures.items():
         print(f"{key:32s} {value}")
-    print(
-        "| round | killed | after s | checkpoint frames | resume s | identical |\n|---|---|---|---|---|---|"
-    )
+    print("| round | killed after checkpoint | + fraction of an interval | resumed from | resume s | same |")
+    print("|---|---|---|---|---|---|")
     for i, r in enumerate(rounds):
+        after = r["kill_after_checkpoint"] if r["killed"] else "not killed"
         print(
-            f"| {i} | {r['killed']} | {r['kill_after_s']} | {r['checkpoint_frames']} | {r['resume_seconds']} "
-            f"| {r['identical']} |"
+            f"| {i} | {after} | {r['kill_fraction_of_interval']} | {r['resumed_from_frame']} | "
+            f"{r['resume_seconds']} | {r['identical']} |"
         )
     write_json(
         args.json, {**figures, **{f"round_{i}_{k}": v for i, r in enumerate(rounds) for k, v in r.items()}}
     )
-    return 0 if figures["checkpointed_outputs_identical"] and figures["kills_identical"] == len(rounds) else 1
+    good = figures["checkpointed_outputs_identical"] and figures["kills_identical"] == len(rounds)
+    return 0 if good else 1
 
 
 if __name__ == "__main__":

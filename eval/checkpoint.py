@@ -5,13 +5,16 @@ segments), ``LoopClosing`` with its object detector, loop detector database, ver
 backend, and the ``PipelineRun`` (results so far, counters, timings), with the random generators
 these objects hold (every random draw in the project comes from a seeded numpy Generator or a seed
 derived per call, never from a global RNG). Nothing is listed field by field, so new fields of any
-component are saved too.
-Objects that do not pickle are handled where they are defined:
+component are saved too. What does not pickle, or should not be copied each time:
 
 * ``cv2.ORB`` (no pickle support in OpenCV) is rebuilt from its own parameters by
   ``_StatePickler.reducer_override``;
 * ``slam_backend.posegraph.GtsamPoseGraph`` (gtsam objects) pickles as its config and the log of its
-  state-changing calls and is rebuilt by replaying them, which reproduces iSAM2 bit for bit.
+  state-changing calls and is rebuilt by replaying them, which reproduces iSAM2 bit for bit;
+* frame images (keyframes keep theirs) are stored as their frame index and read from the dataset
+  again, for plain image-file readers (``reads_image_files``; others store the pixels);
+* ``lcd.vocabulary.Vocabulary`` pickles as its file's path and SHA-256;
+* ``lcd.wl._Buffer`` pickles its used part only.
 
 Files in the run's output folder:
 
