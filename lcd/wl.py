@@ -237,6 +237,26 @@ class _Postings:
         chain, position = _ranges(self.start.view(), size)
         return chain, self.graph.view()[position], self.run.view()[position], self.count.view()[position]
 
+    def __getstate__(self) -> dict[str, np.ndarray]:
+        """Pickles the live postings only (the arenas' abandoned and spare space is most of them)."""
+        _, graph, run, count = self.listed()
+        return {"size": self.size.view(), "graph": graph, "run": run, "count": count}
+
+    def __setstate__(self, state: dict[str, np.ndarray]) -> None:
+        """Each chain's list at its own offset with its capacity (a function of its size, as
+        ``append`` assumes): what is read, and every later append, are as before pickling."""
+        size = np.asarray(state["size"], dtype=np.int64)
+        capacity = _capacity(size)
+        start = np.cumsum(capacity) - capacity
+        _, position = _ranges(start, size)
+        self.start, self.size = _Buffer(np.int64, start), _Buffer(np.int64, size)
+        arenas = []
+        for name in ("graph", "run", "count"):
+            arena = np.zeros(int(capacity.sum()), dtype=np.int64)
+            arena[position] = state[name]
+            arenas.append(_Buffer(np.int64, arena))
+        self.graph, self.run, self.count = arenas
+
 
 @dataclass(frozen=True)
 class _Relabelled:

@@ -23,6 +23,8 @@ from eval.checkpoint import HEADER_FILE, CheckpointError, check_dataset, read_he
 from eval.cli import main as symbio_main
 from eval.run import KEYFRAMES_FILE, LOOPS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE
 from frontends.datasets import open_dataset
+from lcd.graph import LabelledGraph
+from lcd.wl import WLKernel
 from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
 
 COMPARED = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE)
@@ -215,3 +217,23 @@ def test_pickled_pose_graph_continues_bit_identically() -> None:
     assert list(got) == list(expected)
     for key in expected:
         assert np.array_equal(got[key], expected[key]), key
+
+
+def test_pickled_wl_kernel_scores_bit_identically() -> None:
+    """The kernel pickles its live postings only (``lcd.wl._Postings``); every later add and query
+    scores exactly as without the round trip, and the pickle is smaller than the arenas."""
+    rng = np.random.default_rng(3)
+    graphs = []
+    for _ in range(60):  # random graphs over a small alphabet: many shared chains, lists that grow
+        nodes = int(rng.integers(2, 30))
+        edges = rng.integers(0, nodes, size=(int(rng.integers(1, 3 * nodes)), 2))
+        graphs.append(LabelledGraph(rng.integers(0, 4, nodes), edges, np.zeros(nodes, dtype=np.int64)))
+    uninterrupted = WLKernel(10)
+    for graph in graphs[:30]:
+        uninterrupted.add_and_query(graph)
+    postings = uninterrupted._postings
+    live, arena = int(postings.size.view().sum()), len(postings.graph)
+    assert len(pickle.dumps(postings)) < 3 * 8 * (live + arena) / 2 < 3 * 8 * arena
+    restored = pickle.loads(pickle.dumps(uninterrupted))
+    for graph in graphs[30:]:
+        assert np.array_equal(restored.add_and_query(graph), uninterrupted.add_and_query(graph))
