@@ -32,7 +32,8 @@ its outputs are written).
 Resuming re-opens the dataset with the stored options, refuses a different dataset or options and a
 corrupt or truncated checkpoint (``CheckpointError`` naming the file), unpickles the state and skips
 the frames already processed; the frames that follow see exactly the state the uninterrupted run
-had, so the final trajectory is bit-identical.
+had, so the final trajectory is bit-identical. A checkpoint is a pickle: loading one runs code, so
+resume only checkpoints of your own runs, made by the same code version.
 """
 
 from __future__ import annotations
