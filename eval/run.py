@@ -610,6 +610,8 @@ def describe(components: Components, closing: LoopClosing, args: argparse.Namesp
 
 #: Options that do not change what a run computes: a resumed run may set them anew.
 RESUME_FREE_OPTIONS = ("handler", "command", "verbose", "resume", "out", "json", "no_progress")
+#: How the options whose name is not their destination are spelled in messages.
+OPTION_NAMES = {"path": "DATASET", "fmt": "--format", "overrides": "--set"}
 
 
 def resumed_options(
@@ -627,14 +629,15 @@ def resumed_options(
         if value == checkpoint.run_spec({key: default(key)}, ())[key]:
             continue  # not given on this command line
         if stored.get(key) != value:
-            option = "DATASET" if key == "path" else "--" + key.replace("_", "-")
+            option = OPTION_NAMES.get(key, "--" + key.replace("_", "-"))
             raise CheckpointError(
                 path, f"the checkpoint was made with {option} {stored.get(key)!r}, not {value!r}"
             )
     resumed = argparse.Namespace(**vars(args))
+    paths = set(stored["path_options"])
     for key, value in stored.items():
-        if key != "components":
-            setattr(resumed, key, Path(value) if key in ("path", "calib", "config") and value else value)
+        if key not in ("components", "path_options"):
+            setattr(resumed, key, Path(value) if key in paths and value is not None else value)
     resumed.out = args.resume
     return resumed
 
@@ -663,6 +666,7 @@ def run_command(args: argparse.Namespace, default: Callable[[str], Any] = lambda
     spec = {
         **checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS),
         "components": checkpoint.run_spec(vars(components), ()),
+        "path_options": sorted(k for k, v in vars(args).items() if isinstance(v, Path)),
     }
     dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
     checkpointer = None
