@@ -32,6 +32,13 @@ Writes to ``--out DIR``:
   ``verifier_timeouts``) and, with ``--inject``, ``faults_injected_<kind>`` (per kind). Figures
   that need GT are null without it.
 
+Checkpoint and resume: ``--checkpoint-every N`` saves the whole run state to ``DIR/checkpoint.json``
+and ``DIR/checkpoint-FFFFFF.pkl`` every N frames (atomically; see ``eval.checkpoint``); after a
+crash or ``kill -9``, ``symbio run --resume DIR`` continues with the stored dataset and options and
+writes the outputs an uninterrupted run writes, bit for bit. While ``checkpoint.json`` exists the
+run is unfinished: a checkpointed run deletes earlier outputs in DIR when it starts or resumes, and
+its checkpoint once its outputs are written.
+
 A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
 failing object/loop detectors and verifiers cost one keyframe or candidate (counted), a verifier
 past ``loop_closing.verify_timeout_s`` its candidate (reason "timeout"). ``--inject`` injects
@@ -45,6 +52,7 @@ Examples:
   symbio run scene --detector vbow --set detector.threshold=0.1 --out run_vbow
   symbio run scene --frontend replay --set trajectory=scene/groundtruth.txt --no-loops --out run_gt
   symbio run scene --inject corrupt-image:0.05,black:0.02,objects-raise --inject-seed 1 --out run_faults
+  symbio run scene --checkpoint-every 50 --out run                # after a crash: symbio run --resume run
   symbio run kitti/sequences/06 --frontend replay --set trajectory=orb.txt --set format=kitti \\
       --no-loops --out run_orb
 """
@@ -57,7 +65,7 @@ import itertools
 import logging
 import time
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -69,10 +77,20 @@ from evo.core.geometry import GeometryException
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
+from eval import checkpoint
+from eval.checkpoint import Checkpointer, CheckpointError, RunState
 from eval.inject import KINDS, InjectedDataset, Injection, InjectionSpec
 from eval.lcd_eval import default_object_detector
 from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
-from eval.report import REPORT_FILE, aligned, with_ground_truth, write_plots, write_report
+from eval.report import (
+    APE_FILE,
+    REPORT_FILE,
+    TOP_VIEW_FILE,
+    aligned,
+    with_ground_truth,
+    write_plots,
+    write_report,
+)
 from eval.viewer import RerunViewer
 from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, MaskingFrontend, TrackResult
 from frontends.cli_common import add_json_option, print_figures, write_json
@@ -176,6 +194,10 @@ class PipelineRun:
     frontend_seconds: float = 0.0
     total_seconds: float = 0.0
     interrupted: bool = False
+    #: Checkpoints written (``--checkpoint-every``), seconds spent writing them, size of the last.
+    checkpoints: int = 0
+    checkpoint_seconds: float = 0.0
+    checkpoint_bytes: int = 0
 
     @property
     def tracked(self) -> list[TrackResult]:
@@ -215,7 +237,10 @@ def stream_frames(
     loop_closing: LoopClosing,
     run: PipelineRun,
     viewer: RerunViewer | None = None,
+    after_frame: Callable[[Frame], None] | None = None,
 ) -> None:
+    """Each frame through the frontend and loop closing; ``after_frame`` (e.g. a checkpoint) runs
+    once the frame is done, outside the timings."""
     for frame in frames:
         start = time.perf_counter()
         result = track_frame(frontend, frame, run)
@@ -224,6 +249,8 @@ def stream_frames(
         run.total_seconds += time.perf_counter() - start
         if viewer is not None:
             viewer.frame(frame, result)
+        if after_frame is not None:
+            after_frame(frame)
 
 
 def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
@@ -262,12 +289,16 @@ def run_odometry(
     tolerance: int = 0,
     config: dict[str, Any] | None = None,
     viewer: RerunViewer | None = None,
+    checkpointer: Checkpointer | None = None,
+    resume: RunState | None = None,
 ) -> dict[str, Any]:
     """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
     the trajectories, loops and metrics to ``out_dir``; returns the figures of ``metrics.json``.
 
-    If anything stops the run early (including KeyboardInterrupt), what was processed is written
-    first and the exception re-raised.
+    ``checkpointer`` saves the state every N frames (deleted once the outputs are written);
+    ``resume``: the state of a checkpoint (its ``frontend`` and ``closing`` must be the ones passed),
+    whose processed frames are skipped. If anything stops the run early (including
+    KeyboardInterrupt), what was processed is written first and the exception re-raised.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
@@ -281,23 +312,37 @@ def run_odometry(
         frontend.set_dynamic_objects(closing.movable_boxes)
     if viewer is not None:
         attach_viewer(viewer, closing)
-    run = PipelineRun()
+    run = PipelineRun() if resume is None else resume.run
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
+    stream: Iterable[Frame] = (
+        itertools.islice(dataset, max_frames)
+        if resume is None
+        else checkpoint.remaining(dataset, max_frames, resume)
+    )
+    if checkpointer is not None:
+        stream = checkpointer.track(stream)
+    after_frame = (
+        (lambda frame: checkpointer.after_frame(frame, frontend, closing, run)) if checkpointer else None
+    )
     try:
         with tqdm(
-            itertools.islice(dataset, max_frames),
+            stream,
             total=total,
+            initial=len(run.results),
             disable=not progress,
             unit="frame",
             desc=f"run {frontend.name}",
         ) as frames:
-            stream_frames(frames, frontend, closing, run, viewer)
+            stream_frames(frames, frontend, closing, run, viewer, after_frame)
     except BaseException:
         run.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
         write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
         raise
-    return write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+    figures = write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+    if checkpointer is not None:
+        checkpoint.discard(out_dir)
+    return figures
 
 
 def write_outputs(
@@ -415,6 +460,9 @@ def run_figures(
         "verifier_timeouts": counters.verifier_timeouts,
         **(dataset.injection.figures() if isinstance(dataset, InjectedDataset) else {}),
         "interrupted": run.interrupted,
+        "checkpoints": run.checkpoints,
+        "ms_per_checkpoint": 1e3 * run.checkpoint_seconds / run.checkpoints if run.checkpoints else None,
+        "checkpoint_bytes": run.checkpoint_bytes if run.checkpoints else None,
     }
     figures.update(loop_truth(dataset, loops, keyframes, tolerance))
     return figures
@@ -495,7 +543,7 @@ def add_parser(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_dataset_arguments(parser)
+    add_dataset_arguments(parser, path_optional=True)
     defaults = Components()
     parser.add_argument(
         "--frontend",
@@ -542,8 +590,22 @@ def add_parser(subparsers: Any) -> None:
         default=3,
         help="frames an accepted loop may be off a GT reference (default 3)",
     )
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--out", type=Path, metavar="DIR", help="output folder (with --resume: DIR)")
     parser.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N frames")
+    parser.add_argument(
+        "--checkpoint-every",
+        type=int,
+        metavar="N",
+        help="save the whole run state to the output folder every N frames (atomically; deleted "
+        "when the run ends) so that --resume can continue after a crash or kill",
+    )
+    parser.add_argument(
+        "--resume",
+        type=Path,
+        metavar="DIR",
+        help="continue the checkpointed run in DIR with its stored dataset and options (DATASET and "
+        "options may be repeated but must match); the outputs equal an uninterrupted run's",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--inject",
@@ -555,7 +617,7 @@ def add_parser(subparsers: Any) -> None:
         "--inject-seed", type=int, default=0, metavar="N", help="seed of the --inject choices (default 0)"
     )
     add_json_option(parser)
-    parser.set_defaults(handler=run_command)
+    parser.set_defaults(handler=lambda args: run_command(args, parser.get_default))
 
 
 def describe(components: Components, closing: LoopClosing, args: argparse.Namespace) -> dict[str, Any]:
@@ -574,9 +636,53 @@ def describe(components: Components, closing: LoopClosing, args: argparse.Namesp
     }
 
 
-def run_command(args: argparse.Namespace) -> int:
+#: Options that do not change what a run computes: a resumed run may set them anew.
+RESUME_FREE_OPTIONS = ("handler", "command", "verbose", "resume", "out", "json", "no_progress")
+#: How the options whose name is not their destination are spelled in messages.
+OPTION_NAMES = {"path": "DATASET", "fmt": "--format", "overrides": "--set"}
+
+
+def resumed_options(
+    args: argparse.Namespace, default: Callable[[str], Any], header: dict[str, Any]
+) -> argparse.Namespace:
+    """``args`` with the run options stored in the checkpoint; a conflicting option given on the
+    command line is a CheckpointError (naming the header)."""
+    assert args.resume is not None
+    path = args.resume / checkpoint.HEADER_FILE
+    if args.out is not None and args.out.resolve() != args.resume.resolve():
+        raise CheckpointError(path, f"--out {args.out} differs from --resume {args.resume}")
+    stored = header["spec"]
+    given = checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS)
+    for key, value in given.items():
+        if value == checkpoint.run_spec({key: default(key)}, ())[key]:
+            continue  # not given on this command line
+        if stored.get(key) != value:
+            option = OPTION_NAMES.get(key, "--" + key.replace("_", "-"))
+            raise CheckpointError(
+                path, f"the checkpoint was made with {option} {stored.get(key)!r}, not {value!r}"
+            )
+    resumed = argparse.Namespace(**vars(args))
+    paths = set(stored["path_options"])
+    for key, value in stored.items():
+        if key not in ("components", "path_options"):
+            setattr(resumed, key, Path(value) if key in paths and value is not None else value)
+    resumed.out = args.resume
+    return resumed
+
+
+def run_command(args: argparse.Namespace, default: Callable[[str], Any] = lambda key: None) -> int:
+    """``symbio run``; ``default`` gives the parser's default of an option (what --resume compares)."""
+    header = checkpoint.read_header(args.resume) if args.resume is not None else None
+    if header is not None:
+        args = resumed_options(args, default, header)
+    if args.path is None or args.out is None:
+        raise ConfigError("symbio run: give DATASET and --out DIR (or --resume DIR)")
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames {args.max_frames}: must be at least 1")
+    if args.checkpoint_every is not None and args.checkpoint_every < 1:
+        raise ConfigError(f"--checkpoint-every {args.checkpoint_every}: must be at least 1")
+    if args.viewer is not None and (args.checkpoint_every is not None or header is not None):
+        raise ConfigError("--viewer cannot be combined with --checkpoint-every or --resume")
     names = {
         "frontend": args.frontend,
         "detector": args.detector,
@@ -585,16 +691,44 @@ def run_command(args: argparse.Namespace) -> int:
         "backend": args.backend,
     }
     components = load_components(args.config, args.overrides, names)
+    spec = {
+        **checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS),
+        "components": checkpoint.run_spec(vars(components), ()),
+        "path_options": sorted(k for k, v in vars(args).items() if isinstance(v, Path)),
+    }
+    if args.inject and (args.checkpoint_every is not None or header is not None):
+        # The injected faults' counters and wrappers are a debugging harness, not run state.
+        raise ConfigError("--inject cannot be combined with --checkpoint-every or --resume")
     injection = Injection(InjectionSpec.parse(args.inject, args.inject_seed)) if args.inject else None
     dataset: Dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
     if injection is not None:
         dataset = injection.wrap_dataset(dataset)
-    frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
+    checkpointer = None
+    if args.checkpoint_every is not None:
+        checkpointer = Checkpointer(args.out, args.checkpoint_every, spec, dataset)
+    resume = None
+    if header is None:
+        checkpoint.discard(args.out)  # a stale checkpoint of another run must not be resumed
+        frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
+        closing = build_loop_closing(dataset, None if args.no_loops else components)
+        if injection is not None:
+            injection.wrap_plugins(closing, dataset)
+    else:
+        if spec["components"] != header["spec"]["components"]:
+            raise CheckpointError(
+                args.out / checkpoint.HEADER_FILE,
+                f"the run config ({args.config or '--set options'}) changed since the checkpoint was made",
+            )
+        checkpoint.check_dataset(header, dataset, args.out)
+        images = checkpointer.images if checkpointer is not None else checkpoint.FrameImages()
+        resume = checkpoint.load_state(header, args.out, dataset, images)
+        frontend, closing = resume.frontend, resume.closing
+        print(f"resuming {args.out} after {header['frames']} frames (next frame {resume.next_index})")
     for note in dataset.notes:
         print(f"note: {note}")
-    closing = build_loop_closing(dataset, None if args.no_loops else components)
-    if injection is not None:
-        injection.wrap_plugins(closing, dataset)
+    if checkpointer is not None:
+        for name in (*OUTPUT_FILES, TOP_VIEW_FILE, APE_FILE):  # outputs appear when the run ends
+            (args.out / name).unlink(missing_ok=True)
     viewer = (
         RerunViewer(args.out / RRD_FILE, args.viewer_connect, camera=dataset.camera)
         if args.viewer == "rerun"
@@ -610,6 +744,8 @@ def run_command(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
         config=describe(components, closing, args),
         viewer=viewer,
+        checkpointer=checkpointer,
+        resume=resume,
     )
     print(f"run {frontend.name} on {dataset.root} ({dataset.format_name})")
     print_figures(figures)

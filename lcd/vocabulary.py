@@ -27,6 +27,8 @@ Files: ``.npz`` with ``format``, ``version``, ``k``, ``levels``, per level ``cen
 
 from __future__ import annotations
 
+import hashlib
+import io
 import time
 import zipfile
 from collections.abc import Iterable, Sequence
@@ -106,6 +108,8 @@ class Vocabulary:
         self.centroids = [np.ascontiguousarray(c, dtype=np.uint8) for c in centroids]
         self.parents = [np.asarray(p, dtype=np.int64) for p in parents]
         self.idf = np.asarray(idf, dtype=np.float64)
+        #: The file it was loaded from and that file's SHA-256 (None when built in memory).
+        self.source: tuple[Path, str] | None = None
         # Per level, a (parents, k) table of child indices; missing children point at a far sentinel
         # row appended to the level's centroids (distance _FAR via the mask).
         self._children: list[np.ndarray] = []
@@ -240,13 +244,23 @@ class Vocabulary:
         """Read a vocabulary ``.npz``; any missing, corrupt or inconsistent file is an ``InputFileError``."""
         source = Path(path)
         try:
-            with np.load(source, allow_pickle=False) as npz:
+            content = source.read_bytes()
+            with np.load(io.BytesIO(content), allow_pickle=False) as npz:
                 arrays = {name: npz[name] for name in npz.files}
         except FileNotFoundError:
             raise InputFileError(source, "vocabulary file not found") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise InputFileError(source, f"not a readable vocabulary .npz ({exc})") from None
-        return cls._from_arrays(source, arrays)
+        vocabulary = cls._from_arrays(source, arrays)
+        vocabulary.source = (source.resolve(), hashlib.sha256(content).hexdigest())
+        return vocabulary
+
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        """A vocabulary read from a file pickles as the file's path and SHA-256 (a run checkpoint
+        would otherwise copy ~10 MB each time); unpickling reloads it and checks the hash."""
+        if self.source is None:
+            return super().__reduce_ex__(protocol)
+        return _reload, self.source
 
     @classmethod
     def _from_arrays(cls, source: Path, arrays: dict[str, np.ndarray]) -> Vocabulary:
@@ -404,3 +418,11 @@ class BowDatabase:
             shared = np.minimum(weights[positions], np.repeat(bow.weights, lengths))
             scores += np.bincount(entries[positions], weights=shared, minlength=self._count)
         return scores
+
+
+def _reload(path: Path, sha256: str) -> Vocabulary:
+    """The pickled vocabulary: reloaded from its file, which must not have changed."""
+    vocabulary = Vocabulary.load(path)
+    if vocabulary.source is None or vocabulary.source[1] != sha256:
+        raise InputFileError(path, "vocabulary file changed since it was pickled (e.g. in a run checkpoint)")
+    return vocabulary

@@ -73,6 +73,16 @@ class _Buffer:
     def view(self) -> np.ndarray:
         return self._data[: self._size]
 
+    def __getstate__(self) -> dict[str, object]:
+        """Pickles the used part only (half of the capacity is empty after a growth step)."""
+        return {"data": self.view(), "capacity": len(self._data)}
+
+    def __setstate__(self, state: dict[str, np.ndarray | int]) -> None:
+        data = np.asarray(state["data"])
+        self._data = np.zeros(int(state["capacity"]), dtype=data.dtype)
+        self._data[: len(data)] = data
+        self._size = len(data)
+
 
 def _ranges(starts: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(segment of each element, index of each element) of the ranges ``starts[i] + 0..lengths[i]-1``."""
@@ -226,6 +236,26 @@ class _Postings:
         size = self.size.view()
         chain, position = _ranges(self.start.view(), size)
         return chain, self.graph.view()[position], self.run.view()[position], self.count.view()[position]
+
+    def __getstate__(self) -> dict[str, np.ndarray]:
+        """Pickles the live postings only (the arenas' abandoned and spare space is most of them)."""
+        _, graph, run, count = self.listed()
+        return {"size": self.size.view(), "graph": graph, "run": run, "count": count}
+
+    def __setstate__(self, state: dict[str, np.ndarray]) -> None:
+        """Each chain's list at its own offset with its capacity (a function of its size, as
+        ``append`` assumes): what is read, and every later append, are as before pickling."""
+        size = np.asarray(state["size"], dtype=np.int64)
+        capacity = _capacity(size)
+        start = np.cumsum(capacity) - capacity
+        _, position = _ranges(start, size)
+        self.start, self.size = _Buffer(np.int64, start), _Buffer(np.int64, size)
+        arenas = []
+        for name in ("graph", "run", "count"):
+            arena = np.zeros(int(capacity.sum()), dtype=np.int64)
+            arena[position] = state[name]
+            arenas.append(_Buffer(np.int64, arena))
+        self.graph, self.run, self.count = arenas
 
 
 @dataclass(frozen=True)

@@ -178,6 +178,11 @@ class LoopClosing:
         #: A verification that ran past its budget and has not returned yet.
         self._late_verification: threading.Thread | None = None
 
+    def __getstate__(self) -> dict[str, Any]:
+        # A verification still running past its budget lives in this process only: a restored run
+        # (checkpoint) starts without it, as a new process would.
+        return {**self.__dict__, "_late_verification": None}
+
     # -- input -------------------------------------------------------------------------------------
 
     def add(self, result: TrackResult, frame: Frame | None = None) -> list[LoopRecord]:

@@ -26,7 +26,13 @@
   After a GNC pass a fresh iSAM2 is seeded with the GNC solution (iSAM2 cannot be re-seeded in
   place, and the batch solution is the better linearisation point).
 * ``save``/``load`` store the inputs (config, keyframes, loops and their ``info``) as JSON; loading
-  replays them, which reproduces the decisions and the estimate (everything is deterministic).
+  replays them, which reproduces the decisions and the estimate (everything is deterministic), but
+  not iSAM2's linearisation history: keyframes and loops interleaved in the original are replayed
+  keyframes first, so the last bits of a continued run may differ.
+* Pickling (``eval.checkpoint``) stores the config and the log of every state-changing call
+  (``add_keyframe``, ``add_loops``, ``remove_loop``, a ``resolve`` that ran GNC) in their original
+  order; unpickling replays the log into a fresh graph, which reproduces iSAM2, PCM and GNC
+  bit-identically (gtsam objects themselves do not pickle).
 
 Bad input raises :class:`slam_backend.errors.PoseGraphError` before anything is changed.
 """
@@ -160,6 +166,22 @@ class _Loop:
     noise: Any = field(default=None, repr=False)
 
 
+def _replayed(config: BackendConfig, calls: Sequence[tuple[Any, ...]]) -> GtsamPoseGraph:
+    """A fresh graph that received ``calls`` (a pickled graph's log) in order: the same state."""
+    graph = GtsamPoseGraph(config)
+    for kind, *arguments in calls:
+        if kind == "keyframe":
+            graph.add_keyframe(*arguments)
+        elif kind == "loops":
+            graph._next_loop_id, loops = arguments
+            graph.add_loops(loops)
+        elif kind == "remove":
+            graph.remove_loop(*arguments)
+        else:
+            graph.resolve()
+    return graph
+
+
 class GtsamPoseGraph:
     """Incremental pose graph on gtsam's iSAM2 with PCM / GNC loop outlier rejection."""
 
@@ -184,6 +206,11 @@ class GtsamPoseGraph:
         self._gnc_verified = True
         #: Loops whose status changed since the last iSAM2 update.
         self._unsynced: set[int] = set()
+        #: Every state-changing call in order, with its checked inputs (what pickling replays).
+        self._calls: list[tuple[Any, ...]] = []
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return _replayed, (self.config, self._calls)
 
     # ----------------------------------------------------------------------------- input checks
     def _new_isam(self) -> gtsam.ISAM2:
@@ -264,6 +291,7 @@ class GtsamPoseGraph:
         self._index[keyframe_id] = len(self._ids)
         self._ids.append(keyframe_id)
         self._odometry.append((step, covariance))
+        self._calls.append(("keyframe", keyframe_id, step, covariance))
 
     # ----------------------------------------------------------------------------- loops
     def add_loop(
@@ -288,6 +316,13 @@ class GtsamPoseGraph:
         """Several loops as one event (e.g. all loops found for one keyframe): each passes the outlier
         test in turn, then one iSAM2 update applies the outcome. All are checked before any is added."""
         checked = [self._checked_loop(*loop) for loop in loops]
+        self._calls.append(
+            (
+                "loops",
+                self._next_loop_id,
+                [(c.start, c.end, c.relative, c.covariance, c.info) for c in checked],
+            )
+        )
         ids = []
         for loop in checked:
             ids.append(self._next_loop_id)
@@ -455,6 +490,7 @@ class GtsamPoseGraph:
         """Take a loop out of the graph and of the outlier test, as if it had never been added."""
         if loop_id not in self._loops:
             raise PoseGraphError(f"loop {loop_id} does not exist")
+        self._calls.append(("remove", loop_id))
         loop = self._loops[loop_id]
         loop.status, loop.reason = "rejected", "removed"
         if self._pcm is not None:
@@ -484,6 +520,7 @@ class GtsamPoseGraph:
         if (self.config.rejection == "gnc" and pending) or (
             self.config.rejection == "pcm+gnc" and not self._gnc_verified
         ):
+            self._calls.append(("resolve",))
             self._run_gnc()
 
     def estimate(self) -> dict[int, np.ndarray]:

@@ -163,8 +163,14 @@ class Dataset:
         self.skipped.append(SkippedFrame(index, where, reason, cause))
 
     def __iter__(self) -> Iterator[Frame]:
-        previous: tuple[int, float] | None = None  # (index, timestamp) of the last frame given out
-        for index in range(len(self)):
+        return self.frames()
+
+    def frames(self, start: int = 0, previous: tuple[int, float] | None = None) -> Iterator[Frame]:
+        """The frames from index ``start`` on, as iterating yields them (readers that override
+        ``__iter__``, e.g. video, stream from the start only). ``previous`` is the (index,
+        timestamp) of the last frame given out before ``start``: a frame whose timestamp is not
+        after it is skipped and counted, as in an uninterrupted stream."""
+        for index in range(start, len(self)):
             stamp = self.entries[index].timestamp
             if previous is not None and stamp <= previous[1]:
                 cause = "duplicate timestamp" if stamp == previous[1] else "backwards timestamp"

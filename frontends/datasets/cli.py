@@ -12,9 +12,12 @@ from frontends.datasets import DATASET_FORMATS, open_dataset
 from frontends.gt_loops import LoopLabelConfig
 
 
-def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    """The dataset options every command that reads a dataset takes."""
-    parser.add_argument("path", type=Path, help="dataset folder (or video file)")
+def add_dataset_arguments(parser: argparse.ArgumentParser, *, path_optional: bool = False) -> None:
+    """The dataset options every command that reads a dataset takes (``path_optional``: the command
+    can take the dataset from elsewhere, e.g. ``symbio run --resume``)."""
+    parser.add_argument(
+        "path", type=Path, nargs="?" if path_optional else None, help="dataset folder (or video file)"
+    )
     parser.add_argument(
         "--format", dest="fmt", choices=DATASET_FORMATS.names(), help="layout (default: detect)"
     )
