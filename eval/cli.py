@@ -48,6 +48,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     # evo logs every file it writes at INFO; our commands report their outputs themselves.
     logging.getLogger("evo").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+    # Dask logs every worker and connection at INFO; sweeps report their jobs themselves.
+    logging.getLogger("distributed").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     try:
         return int(args.handler(args) or 0)
     except SymbioError as exc:

@@ -12,6 +12,8 @@ for users who want them.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -35,6 +37,7 @@ class DetectorRank:
     spread: float
     ci_lower: float
     ci_upper: float
+    #: Against the best detector (Akinshin's gamma, or Cohen's d if parametric); inf when both spreads are 0.
     effect_size: float
     magnitude: str
 
@@ -93,30 +96,34 @@ def rank_detectors(
     count = lengths.pop()
     if count < 5:
         raise ConfigError(f"autorank {metric}: {count} paired samples; autorank needs at least 5")
-    data = pd.DataFrame({name: np.asarray(values, dtype=np.float64) for name, values in samples.items()})
-    with warnings.catch_warnings():
-        # Constant columns (deterministic detectors) make the normality and effect-size helpers warn.
+    # autorank's ``order="descending"`` ranks correctly but lists the worst detector first and takes
+    # effect sizes against it; the negated scores in ascending order list the best first and give
+    # effect sizes against the best, as the paper's tables do. Values are negated back below.
+    negated = pd.DataFrame({name: -np.asarray(values, dtype=np.float64) for name, values in samples.items()})
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+        # Constant columns (deterministic detectors) make the normality and effect-size helpers warn;
+        # autorank prints its table even when not verbose.
         warnings.simplefilter("ignore")
         result = autorank(
-            data,
+            negated,
             alpha=alpha,
             verbose=False,
-            order="descending",
+            order="ascending",
             force_mode=None if mode == "auto" else mode,
             random_state=0,
         )
-    frame = result.rankdf.sort_values("meanrank")
+    frame = result.rankdf
     parametric = "mean" in frame.columns and "median" not in frame.columns
     centre, spread = ("mean", "std") if parametric else ("median", "mad")
     ranks = tuple(
         DetectorRank(
             str(name),
             float(row["meanrank"]),
-            float(row[centre]),
+            -float(row[centre]),
             float(row[spread]),
-            float(row["ci_lower"]),
-            float(row["ci_upper"]),
-            float(row["effect_size"]),
+            -float(row["ci_upper"]),
+            -float(row["ci_lower"]),
+            -float(row["effect_size"]),
             str(row["magnitude"]),
         )
         for name, row in frame.iterrows()
@@ -144,7 +151,7 @@ def plot_critical_difference(analysis: RankAnalysis, path: Path) -> bool:
 
     if analysis.critical_difference is None:
         return False
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
         warnings.simplefilter("ignore")
         ax = plot_stats(analysis.result, allow_insignificant=True)
     if ax is None:

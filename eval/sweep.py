@@ -136,7 +136,7 @@ def dask_client(options: ClusterOptions) -> Iterator[Any]:
             n_workers=workers,
             threads_per_worker=1,
             processes=options.processes,
-            dashboard_address=None,
+            dashboard_address=":0",
             **extra,
         ) as cluster,
         Client(cluster) as client,
