@@ -638,9 +638,7 @@ def earliest_markdown(run: TableRun) -> str:
         "|---" * (1 + 2 * len(detectors)) + "|",
     ]
     for dataset in run.datasets:
-        if (dataset.entry.name, detectors[0]) not in run.pipeline and not any(
-            (dataset.entry.name, d) in run.pipeline for d in detectors
-        ):
+        if not any((dataset.entry.name, d) in run.pipeline for d in detectors):
             continue
         cells = []
         for d in detectors:
