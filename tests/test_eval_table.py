@@ -193,3 +193,39 @@ def test_bad_grid_key_fails_before_any_job(tmp_path: Path) -> None:
     )
     assert main(["eval", "sweep", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.shared
+def test_table_on_the_real_loop_set_matches_eval_lcd(shared: Path, tmp_path: Path) -> None:
+    """The table's figures on the RTAB-Map samples are those of ``symbio eval lcd`` on the same set."""
+    from eval.lcd_eval import figures_of, run_lcd
+    from frontends.datasets import open_dataset
+    from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
+    from lcd.features import OrbConfig
+
+    rtabmap = shared / "data" / "loops" / "rtabmap_samples"
+    config = tmp_path / "real.yaml"
+    config.write_text(
+        "repeats: 5\ndetectors: [vbow, symbiolcd2]\nbaselines: [decision-tree]\nablation: [symbiolcd2]\n"
+        "pipeline_detectors: [symbiolcd2]\n"
+        "train: {scenes: ['loop:110'], frames: 240, width: 320, height: 240}\n"
+        f"datasets:\n  - {{name: rtabmap, path: {rtabmap}, tolerance: 0}}\n"
+    )
+    out = tmp_path / "T"
+    run = run_table(load_experiment_config(TableConfig, config), out, THREADS)
+    write_table_outputs(run, out)
+    assert not run.outcome.failures and not run.skipped
+    # Deterministic detectors on CNN objects run once; the trained baseline once per seed.
+    assert run.outcome.executed == 2 + 5
+    assert not run.pipeline  # a loop-pairs set has no poses: no pipeline run
+    dataset = open_dataset(rtabmap)
+    objects = OBJECT_DETECTORS.load("ssd-mobilenet")()
+    detectors = [LOOP_DETECTORS.load(name)() for name in ("vbow", "symbiolcd2")]
+    direct = run_lcd(dataset, detectors, objects, OrbConfig(), 0.2, 0, progress=False)
+    for detector, lcd in zip(detectors, direct, strict=True):
+        expected = figures_of(lcd, detector.threshold)
+        for seed in range(5):
+            figures = run.lcd[("rtabmap", detector.name, seed)]["figures"]
+            for key in ("precision", "recall", "recall_at_100p", "auc_pr"):
+                assert figures[key] == pytest.approx(expected[key]), (detector.name, key)
+    assert "5 paired samples" in (out / "table5_autorank_recall.md").read_text()

@@ -95,3 +95,15 @@ def test_unreadable_result_file_names_the_file(tmp_path: Path) -> None:
     store.path(spec).write_text("{truncated", encoding="utf-8")
     with pytest.raises(InputFileError, match=job_key(spec)):
         store.load(spec)
+
+
+def test_existing_scheduler_by_address(tmp_path: Path) -> None:
+    from dask.distributed import LocalCluster
+
+    counter = tmp_path / "count.txt"
+    specs = [{"x": x, "counter": str(counter)} for x in (1, 2)]
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=":0") as cluster:
+        with dask_client(ClusterOptions(scheduler=cluster.scheduler_address)) as client:
+            outcome = run_jobs(client, specs, square, ResultStore(tmp_path / "results"))
+        assert len(cluster.scheduler.workers) == 1
+    assert [r["value"] for r in outcome.results.values()] == [1, 4]
