@@ -157,7 +157,7 @@ def plot_critical_difference(analysis: RankAnalysis, path: Path) -> bool:
     if ax is None:
         return False
     figure = ax.get_figure()
-    figure.suptitle(f"critical difference: {analysis.metric}")
+    figure.suptitle(f"critical difference: {analysis.metric}", y=1.12)
     figure.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(figure)
     return True

@@ -506,8 +506,6 @@ def run_table(config: TableConfig, out: Path, cluster: ClusterOptions) -> TableR
     datasets, skipped = resolve_datasets(config.datasets, out)
     lcd, pipeline = table_specs(config, datasets, out)
     store = ResultStore(out / "results")
-    specs = [*lcd.values(), *pipeline.values()]
-    total = len({job_key(s) for s in specs})
     done = [0]
 
     def report(spec: JobSpec, result: JobResult) -> None:
@@ -545,8 +543,9 @@ def run_table(config: TableConfig, out: Path, cluster: ClusterOptions) -> TableR
             if future.status != "error":
                 future.exception()  # wait; a failure shows again in each baseline job of that seed
         specs = [*lcd.values(), *pipeline.values()]
+        unique = {job_key(s): s for s in specs}.values()
         print(
-            f"eval table: {total} jobs, {sum(store.has(s) for s in specs)} already in {store.root}",
+            f"eval table: {len(unique)} jobs, {sum(store.has(s) for s in unique)} already in {store.root}",
             flush=True,
         )
         outcome = run_jobs(client, specs, execute_job, store, report)
