@@ -37,7 +37,7 @@ format: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
 
-# Every speed and accuracy benchmark (about 35 minutes on 2 cores; each prints its ratios and tables).
+# Every speed and accuracy benchmark (about 40 minutes on 2 cores; each prints its ratios and tables).
 bench: $(VENV)/.installed-dev
 	$(PY) eval/bench_synth.py
 	$(PY) -m eval.bench_vbow
@@ -47,6 +47,7 @@ bench: $(VENV)/.installed-dev
 	$(PY) -m eval.bench_lcd
 	$(PY) eval/bench_frontend.py
 	$(PY) -m eval.bench_pipeline
+	$(PY) eval/bench_sweep.py
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .mypy_cache .ruff_cache

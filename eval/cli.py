@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -48,6 +49,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     # evo logs every file it writes at INFO; our commands report their outputs themselves.
     logging.getLogger("evo").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+    # Dask logs every worker and connection at INFO; sweeps report their jobs themselves. Dask reads
+    # its logging config from the environment when imported (here and in worker processes).
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "debug" if args.verbose else "warning")
     try:
         return int(args.handler(args) or 0)
     except SymbioError as exc:
