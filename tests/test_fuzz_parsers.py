@@ -25,12 +25,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from eval import checkpoint
+from eval.inject import KINDS, InjectionSpec
 from frontends.config import load_config
 from frontends.datasets import open_dataset
 from frontends.datasets.calib import read_intrinsics
 from frontends.datasets.euroc import read_groundtruth, read_image_list
 from frontends.datasets.kitti import read_projection_matrices
-from frontends.errors import SymbioError
+from frontends.errors import ConfigError, SymbioError
 from frontends.gt_loops import LoopLabelConfig, read_loop_pairs
 from frontends.trajectory_io import read_kitti_poses, read_times, read_tum
 from lcd.symbiolcd import load_table
@@ -220,3 +222,53 @@ def test_truncated_npz_names_the_file(tmp_path: Path) -> None:
     path.write_bytes(buffer.getvalue()[:-10])
     with pytest.raises(SymbioError, match=r"cut\.npz"):
         Vocabulary.load(path)
+
+
+RUN_HEADER_KEYS = st.sampled_from(
+    [
+        "format",
+        "version",
+        "frames",
+        "next_index",
+        "payload",
+        "bytes",
+        "sha256",
+        "spec",
+        "spec_hash",
+        "dataset",
+    ]
+)
+RUN_HEADER_VALUES = st.recursive(
+    st.one_of(
+        st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=8),
+        st.sampled_from([checkpoint.FORMAT, checkpoint.VERSION, "checkpoint-000050.pkl", "../graph.json"]),
+    ),
+    lambda children: st.one_of(
+        st.lists(children, max_size=4), st.dictionaries(RUN_HEADER_KEYS, children, max_size=10)
+    ),
+    max_leaves=25,
+)  # fmt: skip
+
+
+@given(st.one_of(st.text(max_size=200), RUN_HEADER_VALUES.map(json.dumps)))
+def test_run_checkpoint_header(text: str) -> None:
+    """``symbio run --resume DIR``: the header, then the payload it names (size and hash first)."""
+    path = _write(text, checkpoint.HEADER_FILE)
+    try:
+        header = checkpoint.read_header(path.parent)
+        checkpoint.load_state(header, path.parent, None, None)  # type: ignore[arg-type]
+    except SymbioError as exc:
+        assert checkpoint.HEADER_FILE in str(exc) or str(path.parent) in str(exc), exc
+    else:
+        raise AssertionError("a fuzzed header loaded a state")
+
+
+@given(st.lists(st.one_of(st.sampled_from(sorted(KINDS)), TOKENS, st.text(max_size=10)), max_size=5))
+def test_inject_spec(parts: list[str]) -> None:
+    """``--inject KIND[:RATE],...``: a spec or a ConfigError naming what is wrong."""
+    text = ",".join(parts)
+    try:
+        spec = InjectionSpec.parse(text, 0)
+    except ConfigError:
+        return
+    assert spec.faults and all(0.0 < fault.rate <= 1.0 and fault.kind in KINDS for fault in spec.faults)
