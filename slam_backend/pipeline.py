@@ -123,7 +123,7 @@ class LoopRecord:
 LoopInput = tuple[int, int, np.ndarray, np.ndarray, Mapping[str, Any] | None]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # identity: one held loop may support several new ones
 class _HeldBridge:
     """A verified loop between two segments not joined yet, waiting for support."""
 
@@ -377,7 +377,7 @@ class LoopClosing:
                     if len(support) + 1 < self.config.bridge_support:
                         held[position] = (segments, loop)
                         continue
-                    released += support
+                    released += [h for h in support if all(h is not r for r in released)]
                 loops.append(loop)
                 positions.append(position)
         outcome = self.backend.add_loops(loops + [h.loop for h in released]) if loops else []

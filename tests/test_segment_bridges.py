@@ -37,12 +37,13 @@ class ChosenCandidates:
     name = "chosen"
     threshold = 0.5
 
-    def __init__(self, proposals: dict[int, int]) -> None:
-        self.proposals = proposals  # query keyframe -> match keyframe
+    def __init__(self, proposals: dict[int, int | tuple[int, ...]]) -> None:
+        self.proposals = proposals  # query keyframe -> match keyframe(s)
 
     def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
-        match = self.proposals.get(keyframe.id)
-        return [] if match is None else [LoopCandidate(keyframe.id, match, 10.0, {})]
+        matches = self.proposals.get(keyframe.id, ())
+        matches = matches if isinstance(matches, tuple) else (matches,)
+        return [LoopCandidate(keyframe.id, match, 10.0, {}) for match in matches]
 
 
 class StubVerifier:
@@ -60,7 +61,7 @@ class StubVerifier:
         return Verification(query.id, match.id, True, "", 200, 150, relative, COVARIANCE)
 
 
-def run(proposals: dict[int, int], false: set[int], support: int = 2) -> LoopClosing:
+def run(proposals: dict[int, int | tuple[int, ...]], false: set[int], support: int = 2) -> LoopClosing:
     closing = LoopClosing(
         GtsamPoseGraph(BackendConfig()),
         ChosenCandidates(proposals),  # type: ignore[arg-type]
@@ -116,6 +117,14 @@ def test_a_false_loop_does_not_support_a_true_one_and_stays_out() -> None:
     by_query = {r.query: r for r in closing.loops()}
     assert by_query[25].accepted and by_query[30].accepted
     assert not by_query[34].accepted and by_query[34].reason == "rejected by the backend"
+
+
+def test_one_held_loop_supports_two_candidates_of_one_query() -> None:
+    # Both candidates of keyframe 30 are consistent with the held 25 -> 5: it is released once.
+    closing = run({25: 5, 30: (10, 11)}, false=set())
+    records = closing.loops()
+    assert len(records) == 3 and all(r.accepted for r in records)
+    assert len({r.loop_id for r in records}) == 3
 
 
 def test_bridge_support_is_validated() -> None:
