@@ -835,13 +835,20 @@ def write_report(
     )
 
 
-def add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
+def add_job_arguments(parser: argparse.ArgumentParser, config_help: str, repeats_help: str) -> None:
+    """What ``table`` and ``sweep`` share: the config, the result store, repeats and the cluster."""
+    parser.add_argument("--config", type=Path, required=True, help=config_help)
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="output folder and result store"
+    )
+    parser.add_argument("--repeats", type=int, help=repeats_help)
     parser.add_argument(
         "--scheduler",
         metavar="ADDRESS",
         help="address of a running Dask scheduler (default: a LocalCluster of one worker per core)",
     )
     parser.add_argument("--workers", type=int, help="local workers (default: one per core)")
+    add_json_option(parser)
 
 
 def add_table_parsers(commands: Any) -> None:
@@ -852,11 +859,11 @@ def add_table_parsers(commands: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    table.add_argument("--config", type=Path, required=True, help="experiment YAML (eval/configs/paper.yaml)")
-    table.add_argument(
-        "--out", type=Path, required=True, metavar="DIR", help="output folder and result store"
+    add_job_arguments(
+        table,
+        "experiment YAML (eval/configs/paper.yaml)",
+        "runs per (dataset, detector), overriding the config",
     )
-    table.add_argument("--repeats", type=int, help="runs per (dataset, detector), overriding the config")
     table.add_argument(
         "--set",
         dest="overrides",
@@ -865,8 +872,6 @@ def add_table_parsers(commands: Any) -> None:
         metavar="KEY=VALUE",
         help="override a top-level config value",
     )
-    add_cluster_arguments(table)
-    add_json_option(table)
     table.set_defaults(handler=run_table_command)
     sweep = commands.add_parser(
         "sweep",
@@ -874,13 +879,9 @@ def add_table_parsers(commands: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sweep.add_argument("--config", type=Path, required=True, help="sweep YAML (detector, grid, datasets)")
-    sweep.add_argument(
-        "--out", type=Path, required=True, metavar="DIR", help="output folder and result store"
+    add_job_arguments(
+        sweep, "sweep YAML (detector, grid, datasets)", "seeds per grid point, overriding the config"
     )
-    sweep.add_argument("--repeats", type=int, help="seeds per grid point, overriding the config")
-    add_cluster_arguments(sweep)
-    add_json_option(sweep)
     sweep.set_defaults(handler=run_sweep_command)
 
 

@@ -34,6 +34,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import networkx as nx
 import numpy as np
 
 from frontends.base import TrackResult
@@ -204,7 +205,7 @@ class LoopClosing:
         #: Loops between segments held for support, the segment pairs joined by an accepted loop,
         #: and the odometry steps (with covariances) that PCM's test of held loops runs along.
         self._held: list[_HeldBridge] = []
-        self._joined: set[frozenset[int]] = set()
+        self._joined = nx.Graph()  # segments, an edge per pair joined by an accepted loop
         self._steps: list[tuple[np.ndarray, np.ndarray]] = []
         self._chain_index: dict[int, int] = {}
         self._pcm = self._bridge_test()
@@ -371,7 +372,7 @@ class LoopClosing:
             if v.verified and v.relative is not None and v.covariance is not None:
                 info = {"score": float(c.score), "inliers": v.inliers}
                 loop = (c.match, c.query, v.relative, v.covariance, info)
-                segments = frozenset((self._keyframes[c.match].segment, self._keyframes[c.query].segment))
+                segments = self._segments(loop)
                 if len(segments) == 2 and not self._connected(segments):
                     support = self._support(segments, loop)
                     if len(support) + 1 < self.config.bridge_support:
@@ -380,7 +381,8 @@ class LoopClosing:
                     released += [h for h in support if all(h is not r for r in released)]
                 loops.append(loop)
                 positions.append(position)
-        outcome = self.backend.add_loops(loops + [h.loop for h in released]) if loops else []
+        sent = loops + [h.loop for h in released]
+        outcome = self.backend.add_loops(sent) if sent else []
         decisions = dict(zip(positions, outcome[: len(loops)], strict=True))
         for bridge, bridge_decision in zip(released, outcome[len(loops) :], strict=True):
             self._held.remove(bridge)
@@ -390,10 +392,9 @@ class LoopClosing:
                 reason=_backend_reason(bridge_decision),
                 loop_id=bridge_decision.loop_id,
             )
-        for (match, query, *_), sent in zip(loops + [h.loop for h in released], outcome, strict=True):
-            pair = frozenset((self._keyframes[match].segment, self._keyframes[query].segment))
-            if sent.accepted and len(pair) == 2:
-                self._joined.add(pair)
+        for sent_loop, loop_decision in zip(sent, outcome, strict=True):
+            if loop_decision.accepted and len(self._segments(sent_loop)) == 2:
+                self._joined.add_edge(*self._segments(sent_loop))
         self.counters.seconds["backend"] += time.perf_counter() - start
         records: list[LoopRecord] = []
         for position, (candidate, verification) in enumerate(zip(chosen, verifications, strict=True)):
@@ -428,19 +429,14 @@ class LoopClosing:
             self.on_correction(self._current_segment_estimates(keyframe.segment))
         return records
 
+    def _segments(self, loop: LoopInput) -> frozenset[int]:
+        return frozenset((self._keyframes[loop[0]].segment, self._keyframes[loop[1]].segment))
+
     def _connected(self, segments: frozenset[int]) -> bool:
         """Whether accepted loops join the two segments (directly or through others)."""
-        start, goal = sorted(segments)
-        reached, frontier = {start}, [start]
-        while frontier:
-            current = frontier.pop()
-            for pair in self._joined:
-                if current in pair:
-                    (other,) = pair - {current}
-                    if other not in reached:
-                        reached.add(other)
-                        frontier.append(other)
-        return goal in reached
+        first, second = sorted(segments)
+        joined = self._joined
+        return first in joined and second in joined and nx.has_path(joined, first, second)
 
     def _support(self, segments: frozenset[int], loop: LoopInput) -> list[_HeldBridge]:
         """The held loops between ``segments`` that pass PCM's pairwise test with ``loop``."""
