@@ -14,7 +14,8 @@ Writes to ``--out DIR``:
   estimate of its keyframe); ``trajectory_odometry_tum.txt``: the same frames, odometry only;
   ``keyframes_tum.txt``: the loop-closed keyframes. Without loop closing the first equals the second.
 * ``loops.csv``: every verified candidate: query, match (keyframe ids and frames), score, verified,
-  inliers, accepted (the backend's final decision), scale, reason.
+  inliers, accepted (the backend's final decision), scale, reason and, with GT poses, the
+  constraint's rotation and translation-direction error against them (deg).
 * ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frames_initialising``
   (seen while a map initialised and not posed afterwards), ``frontend_failures``,
   ``frames_skipped`` (never given to the frontend: missing or undecodable images, duplicate or
@@ -26,7 +27,8 @@ Writes to ``--out DIR``:
   frames), ``ate_rmse_after_all`` (every posed frame; segments are one graph after loop closing),
   ``rpe_rmse_before`` / ``rpe_rmse_after`` (evo RPE translation over 1 s, on the aligned
   trajectories), ``loops_proposed`` (candidates verified), ``loops_verified``, ``loops_accepted``,
-  ``false_loops_accepted``, ``lcd_precision`` / ``lcd_recall`` of the accepted loops against the GT
+  ``false_loops_accepted`` (constraints that contradict the GT poses; see ``loop_truth``),
+  ``loops_outside_gt_band``, ``lcd_precision`` / ``lcd_recall`` of the accepted loops against the GT
   loop pairs (``--tolerance`` frames), ``path_length`` (GT, m), ``interrupted``, the plugin
   failures (``object_detector_failures``, ``loop_detector_failures``, ``verifier_failures``,
   ``verifier_timeouts``) and, with ``--inject``, ``faults_injected_<kind>`` (per kind). Figures
@@ -81,7 +83,7 @@ from eval import checkpoint
 from eval.checkpoint import Checkpointer, CheckpointError, RunState
 from eval.inject import KINDS, InjectedDataset, Injection, InjectionSpec
 from eval.lcd_eval import default_object_detector
-from eval.lcd_metrics import gt_references, has_reachable_loop, is_true_match
+from eval.lcd_metrics import LoopPoseError, gt_references, has_reachable_loop, is_true_match, loop_pose_error
 from eval.report import (
     APE_FILE,
     REPORT_FILE,
@@ -368,7 +370,7 @@ def write_outputs(
         out_dir / KEYFRAMES_FILE, [corrected[k.id] for k in keyframes], [k.timestamp for k in keyframes]
     )
     loops = closing.loops()
-    write_loops_csv(out_dir / LOOPS_FILE, loops)
+    write_loops_csv(out_dir / LOOPS_FILE, loops, loop_pose_errors(dataset, loops))
     figures = run_figures(dataset, frontend, closing, run, final, odometry, loops, tolerance)
     write_json(out_dir / METRICS_FILE, figures)
     images = write_plots(out_dir, dataset, odometry, final, loops, {k.id: k.frame_index for k in keyframes})
@@ -384,21 +386,40 @@ def write_poses(path: Path, poses: list[np.ndarray], timestamps: list[float]) ->
     write_trajectory(path, trajectory, "tum")
 
 
-def write_loops_csv(path: Path, loops: list[LoopRecord]) -> None:
+def write_loops_csv(
+    path: Path, loops: list[LoopRecord], errors: list[LoopPoseError | None] | None = None
+) -> None:
+    """One row per verified candidate; with GT poses also how far its constraint is from the GT."""
     columns = [
         "query", "match", "query_frame", "match_frame", "score", "verified", "inliers", "accepted",
-        "scale", "reason",
+        "scale", "reason", "gt_rotation_error_deg", "gt_direction_error_deg",
     ]  # fmt: skip
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
         writer.writerow(columns)
-        for r in loops:
+        for r, error in zip(loops, errors or [None] * len(loops), strict=True):
             writer.writerow(
                 [
                     r.query, r.match, r.query_frame, r.match_frame, f"{r.score:.6g}", int(r.verified),
                     r.inliers, int(r.accepted), f"{r.scale:.6g}", r.reason,
+                    "" if error is None else f"{error.rotation_deg:.3f}",
+                    "" if error is None else f"{error.direction_deg:.2f}",
                 ]
             )  # fmt: skip
+
+
+def loop_pose_errors(dataset: Dataset, loops: list[LoopRecord]) -> list[LoopPoseError | None]:
+    """Per loop, its constraint's error against the GT poses of its two frames (None without them)."""
+    gt = dataset.gt_poses
+    errors: list[LoopPoseError | None] = []
+    for r in loops:
+        if gt is None or r.relative is None:
+            errors.append(None)
+            continue
+        match, query = gt[r.match_frame], gt[r.query_frame]
+        known = np.isfinite(match).all() and np.isfinite(query).all()
+        errors.append(loop_pose_error(match, query, r.relative) if known else None)
+    return errors
 
 
 def run_figures(
@@ -473,30 +494,46 @@ def loop_truth(
 ) -> dict[str, Any]:
     """False accepted loops, and precision/recall of the accepted loops against the GT loop pairs.
 
-    Recall counts the query keyframes that had a GT loop to an earlier keyframe (within
-    ``tolerance`` frames) and got an accepted true loop."""
-    pairs, _ = dataset.loop_pairs()
-    if pairs is None:
-        return {
-            "false_loops_accepted": None,
-            "lcd_precision": None,
-            "lcd_recall": None,
-            "gt_loop_queries": None,
-        }
-    references = gt_references(pairs)
+    A loop is false when its constraint contradicts the GT poses (``LoopPoseError.wrong``); without
+    GT poses for its frames, when it lies outside the GT loop pairs' band (``tolerance`` frames).
+    The band is a place labeller's (synthetic scenes: cameras within 0.6 m and 30 deg): views of
+    the same wall 1-2 m apart fall outside it and still give right constraints (measured: within
+    0.4 deg and 1 deg of the GT), so ``loops_outside_gt_band`` counts those separately. Recall
+    counts the query keyframes that had a GT loop to an earlier keyframe (within ``tolerance``
+    frames) and got an accepted loop inside the band."""
     accepted = [r for r in loops if r.accepted]
-    true = [r for r in accepted if is_true_match(r.match_frame, references.get(r.query_frame), tolerance)]
-    frames = [k.frame_index for k in keyframes]
-    reachable = {
-        f for i, f in enumerate(frames) if has_reachable_loop(references.get(f), frames[:i], tolerance)
+    errors = loop_pose_errors(dataset, accepted)
+    pairs, _ = dataset.loop_pairs()
+    figures: dict[str, Any] = {
+        "false_loops_accepted": None,
+        "loops_outside_gt_band": None,
+        "lcd_precision": None,
+        "lcd_recall": None,
+        "gt_loop_queries": None,
     }
-    found = {r.query_frame for r in true} & reachable
-    return {
-        "false_loops_accepted": len(accepted) - len(true),
-        "lcd_precision": len(true) / len(accepted) if accepted else None,
-        "lcd_recall": len(found) / len(reachable) if reachable else None,
-        "gt_loop_queries": len(reachable),
-    }
+    in_band: list[bool | None] = [None] * len(accepted)
+    if pairs is not None:
+        references = gt_references(pairs)
+        in_band = [is_true_match(r.match_frame, references.get(r.query_frame), tolerance) for r in accepted]
+        true = [r for r, inside in zip(accepted, in_band, strict=True) if inside]
+        frames = [k.frame_index for k in keyframes]
+        reachable = {
+            f for i, f in enumerate(frames) if has_reachable_loop(references.get(f), frames[:i], tolerance)
+        }
+        found = {r.query_frame for r in true} & reachable
+        figures.update(
+            loops_outside_gt_band=len(accepted) - len(true),
+            lcd_precision=len(true) / len(accepted) if accepted else None,
+            lcd_recall=len(found) / len(reachable) if reachable else None,
+            gt_loop_queries=len(reachable),
+        )
+    verdicts = [
+        error.wrong if error is not None else (None if inside is None else not inside)
+        for error, inside in zip(errors, in_band, strict=True)
+    ]
+    if pairs is not None or dataset.gt_poses is not None:
+        figures["false_loops_accepted"] = sum(bool(v) for v in verdicts)
+    return figures
 
 
 def trajectory_errors(

@@ -118,6 +118,8 @@ class LoopRecord:
     reason: str
     scale: float = float("nan")
     loop_id: int | None = None
+    #: The verified relative Sim(3) (the query keyframe's pose in the match keyframe's frame).
+    relative: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 #: What ``PoseGraphBackend.add_loops`` takes per loop: match, query, relative Sim(3), covariance, info.
@@ -420,6 +422,7 @@ class LoopClosing:
                 reason,
                 verification.scale,
                 decision.loop_id if decision is not None else None,
+                verification.relative,
             )
             records.append(record)
             if self.on_loop is not None:

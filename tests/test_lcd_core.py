@@ -9,6 +9,7 @@ from eval.lcd_metrics import (
     gt_references,
     has_reachable_loop,
     is_true_match,
+    loop_pose_error,
     precision_recall_curve,
     summarise,
 )
@@ -133,3 +134,35 @@ def test_metrics_known_answers() -> None:
     # tied scores are accepted together
     _, tied_precision, _ = precision_recall_curve(np.array([0.5, 0.5]), np.array([True, False]), 1)
     np.testing.assert_allclose(tied_precision, [0.5])
+
+
+def _pose(yaw_deg: float, position: tuple[float, float, float]) -> np.ndarray:
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    pose = np.eye(4)
+    pose[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    pose[:3, 3] = position
+    return pose
+
+
+def test_loop_pose_error_compares_rotation_and_direction_not_scale() -> None:
+    match, query = _pose(10, (1.0, 0.0, 2.0)), _pose(30, (2.0, 0.0, 2.5))
+    truth = np.linalg.inv(match) @ query
+    sim3 = truth.copy()
+    sim3[:3, :3] *= 4.0  # a map at another scale: same loop
+    sim3[:3, 3] *= 4.0
+    error = loop_pose_error(match, query, sim3)
+    assert error.rotation_deg < 1e-6 and error.direction_deg < 1e-6 and not error.wrong
+    assert error.baseline_m == pytest.approx(np.hypot(1.0, 0.5))
+    turned = truth.copy()
+    turned[:3, :3] = _pose(8, (0, 0, 0))[:3, :3] @ truth[:3, :3]
+    assert loop_pose_error(match, query, turned).rotation_deg == pytest.approx(8.0)
+    assert loop_pose_error(match, query, turned).wrong
+    backwards = truth.copy()
+    backwards[:3, 3] *= -1
+    assert loop_pose_error(match, query, backwards).direction_deg == pytest.approx(180.0)
+    assert loop_pose_error(match, query, backwards).wrong
+    # Cameras 5 cm apart: the direction is noise, only the rotation decides.
+    near = _pose(30, (1.03, 0.0, 2.04))
+    flipped = np.linalg.inv(match) @ near
+    flipped[:3, 3] *= -1
+    assert not loop_pose_error(match, near, flipped).wrong

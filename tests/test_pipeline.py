@@ -15,6 +15,7 @@ import json
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -24,7 +25,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
 from eval.cli import main as symbio_main
-from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, load_components
+from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, load_components, loop_truth
 from eval.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.base import TrackResult
 from frontends.synth.render import RenderedFrame, SceneRenderer
@@ -33,7 +34,7 @@ from frontends.trajectory_io import read_tum
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate
 from lcd.symbiolcd2 import create as create_symbiolcd2
-from slam_backend.pipeline import LoopClosing
+from slam_backend.pipeline import LoopClosing, LoopRecord
 from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
 from slam_backend.verify import create as create_verifier
 
@@ -293,3 +294,40 @@ def test_a_bad_run_config_names_the_file(tmp_path: Path) -> None:
     bad.write_text("detector: vbow\n")
     with pytest.raises(ConfigError, match=r"run\.yaml: section 'detector' must be a mapping"):
         load_components(bad, [], {})
+
+
+class _GroundTruth:
+    """What ``loop_truth`` reads of a dataset: GT poses and GT loop pairs."""
+
+    def __init__(self, poses: np.ndarray | None, pairs: np.ndarray | None) -> None:
+        self.gt_poses = poses
+        self._pairs = pairs
+
+    def loop_pairs(self) -> tuple[np.ndarray | None, None]:
+        return self._pairs, None
+
+
+def _accepted(query_frame: int, match_frame: int, relative: np.ndarray) -> LoopRecord:
+    return LoopRecord(
+        query_frame, match_frame, query_frame, match_frame, 1.0, True, 80, True, "", 1.0, 0, relative
+    )
+
+
+def test_a_false_loop_is_a_constraint_that_contradicts_the_gt_poses() -> None:
+    """A right constraint outside the labeller's band is not false; a wrong one inside it is."""
+    poses = np.repeat(np.eye(4)[None], 40, axis=0)
+    poses[:, 0, 3] = np.arange(40) * 0.1  # straight line, 10 cm per frame
+    right = np.linalg.inv(poses[10]) @ poses[30]
+    wrong = np.linalg.inv(poses[2]) @ poses[31]
+    wrong[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix()
+    loops = [_accepted(30, 10, right), _accepted(31, 2, wrong)]
+    keyframes = [SimpleNamespace(frame_index=i) for i in range(40)]
+    pairs = np.array([[31, 2], [30, 25]])
+    figures = loop_truth(_GroundTruth(poses, pairs), loops, keyframes, tolerance=0)  # type: ignore[arg-type]
+    assert figures["false_loops_accepted"] == 1
+    assert figures["loops_outside_gt_band"] == 1 and figures["lcd_precision"] == 0.5
+    # Without GT poses the band is all there is; without either, nothing is known.
+    assert loop_truth(_GroundTruth(None, pairs), loops, keyframes, 0)["false_loops_accepted"] == 1  # type: ignore[arg-type]
+    only_poses = loop_truth(_GroundTruth(poses, None), loops, keyframes, 0)  # type: ignore[arg-type]
+    assert only_poses["false_loops_accepted"] == 1 and only_poses["loops_outside_gt_band"] is None
+    assert loop_truth(_GroundTruth(None, None), loops, keyframes, 0)["false_loops_accepted"] is None  # type: ignore[arg-type]
