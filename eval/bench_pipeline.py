@@ -11,8 +11,9 @@ before (its odometry chain) and after loop closing, loops proposed / verified / 
 (constraints off the GT relative pose: ``eval.run.loop_truth``) / outside the GT labeller's band
 (by more than 3 frames; right constraints between views of the same wall 1-2 m apart land there),
 segments and pipeline fps. The frontend continues from every loop-corrected map, so the full run's
-own odometry already profits from the loops; "after / no loops" is what loop closing buys. Targets checked at the end: ``after <= 0.5 x
-no loops`` on every revisiting scene, no false loop anywhere, no loop on the control, >= 20 fps.
+own odometry already profits from the loops; "after / no loops" is what loop closing buys. Targets
+checked at the end: ``after <= 0.5 x no loops`` on every revisiting scene, no false loop anywhere,
+no loop on the control, >= 20 fps.
 
 Usage: ``python -m eval.bench_pipeline [--trajectories loop,figure8,out-and-back] [--seeds 0,1,2]
 [--frames 600] [--work DIR] [--json OUT]``.

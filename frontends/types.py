@@ -130,7 +130,9 @@ class Keyframe:
     id: int
     frame_index: int
     timestamp: float
-    #: Camera-to-world pose (4x4). Monocular: in the map's arbitrary scale.
+    #: Camera-to-world pose (4x4). Monocular: in the map's arbitrary scale, a Sim(3) ``[s R, t]``
+    #: once loop corrections have rescaled the map around the keyframe (``points3d`` then stay in
+    #: the keyframe's own units: its camera frame divided by ``s``).
     pose: np.ndarray
     keypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))

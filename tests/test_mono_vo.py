@@ -219,8 +219,9 @@ def test_kitti_clip_accuracy(shared: Path) -> None:
 
 def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """A loop correction that moves the whole map by a similarity S: the keyframes land on S's
-    poses and the next frames are tracked in the moved map (their poses are S applied to the poses
-    an uncorrected twin frontend reports)."""
+    poses (Sim(3), carrying S's scale), their points3d stay in their own units (unchanged), and the
+    next frames are tracked in the moved map (their poses are S applied to the poses an uncorrected
+    twin frontend reports)."""
     camera, frames = loop_frames
     corrected, twin = create(camera), create(camera)
     run(corrected, frames[:80])
@@ -230,9 +231,8 @@ def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsi
     S[:3, 3] = [0.4, -1.2, 2.0]
     corrected.apply_correction({kf.id: S @ kf.pose for kf in corrected.keyframes()})
     for kf, original in zip(corrected.keyframes(), twin.keyframes(), strict=True):
-        expected = S @ original.pose
-        np.testing.assert_allclose(kf.pose[:3, 3], expected[:3, 3], atol=1e-9)
-        np.testing.assert_allclose(kf.pose[:3, :3], expected[:3, :3] / 1.7, atol=1e-9)
+        np.testing.assert_allclose(kf.pose, S @ original.pose, atol=1e-9)
+        np.testing.assert_allclose(kf.points3d, original.points3d, atol=1e-9)
     after, reference = run(corrected, frames[80:110]), run(twin, frames[80:110])
     tracked = [
         (a, r) for a, r in zip(after, reference, strict=True) if a.pose is not None and r.pose is not None
@@ -246,3 +246,24 @@ def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsi
         expected = S @ r.pose
         assert np.linalg.norm(a.pose[:3, 3] - expected[:3, 3]) < tolerance
         assert angle_deg((np.trace(a.pose[:3, :3].T @ expected[:3, :3] / 1.7) - 1) / 2) < 0.5
+
+
+def test_a_correction_applied_twice_moves_the_map_once(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    """The backend sends every keyframe's estimate after each loop, the earlier loops' scale
+    included: the frontend must apply only the change, or each loop would rescale the map again."""
+    camera, frames = loop_frames
+    frontend = create(camera)
+    run(frontend, frames[:80])
+    S = np.eye(4)
+    S[:3, :3] = 0.8 * Rotation.from_euler("z", 5.0, degrees=True).as_matrix()
+    poses = {kf.id: S @ kf.pose for kf in frontend.keyframes()}
+    frontend.apply_correction(poses)
+    once = [(kf.pose.copy(), kf.points3d.copy()) for kf in frontend.keyframes()]
+    points = frontend.segment_map.points.positions.copy()
+    frontend.apply_correction(poses)
+    for kf, (pose, points3d) in zip(frontend.keyframes(), once, strict=True):
+        np.testing.assert_allclose(kf.pose, pose, atol=1e-9)
+        np.testing.assert_allclose(kf.points3d, points3d, atol=1e-9)
+    np.testing.assert_allclose(frontend.segment_map.points.positions, points, atol=1e-9)

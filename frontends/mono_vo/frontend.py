@@ -282,6 +282,7 @@ class MonoVo:
             np.full(len(features), -1, np.int64),
             output,
             self._dynamic_keypoints(frame, features),
+            self.segment_map.keyframes[-1].scale if self.segment_map.keyframes else 1.0,
         )
         self.segment_map.keyframes.append(state)
         self.all_keyframes.append(state)
@@ -297,12 +298,15 @@ class MonoVo:
         for kf in self.segment_map.keyframes:
             if kf.id in poses:
                 # World-to-world similarity that takes the keyframe's old camera to its new one.
-                corrections[kf.id] = np.asarray(poses[kf.id], dtype=np.float64) @ kf.T_cw
+                corrections[kf.id] = np.asarray(poses[kf.id], dtype=np.float64) @ np.linalg.inv(
+                    _similarity(kf)
+                )
         if not corrections:
             return
         for kf in self.segment_map.keyframes:
             if kf.id in corrections:
                 kf.T_cw = invert(_without_scale(corrections[kf.id] @ invert(kf.T_cw)))
+                kf.scale = float(np.cbrt(np.linalg.det(np.asarray(poses[kf.id])[:3, :3])))
         points = self.segment_map.points
         known = np.array(sorted(corrections))
         newest = self.segment_map.keyframes[-1].id
@@ -382,11 +386,11 @@ class MonoVo:
 
     def _sync_output(self, kf: KeyframeState) -> None:
         """Refresh the API keyframe (of the current segment) from its pose and the map points."""
-        kf.output.pose = invert(kf.T_cw)
+        kf.output.pose = _similarity(kf)
         ids = self.segment_map.live_ids(kf)
         points3d = np.full((len(ids), 3), np.nan)
         mapped = ids >= 0
-        points3d[mapped] = transform(kf.T_cw, self.segment_map.points.positions[ids[mapped]])
+        points3d[mapped] = transform(kf.T_cw, self.segment_map.points.positions[ids[mapped]]) / kf.scale
         kf.output.points3d = points3d
 
     # -- intrinsics check --------------------------------------------------------------------------
@@ -438,6 +442,13 @@ def _fraction_of_motion(T: np.ndarray, fraction: float) -> np.ndarray:
     if fraction == 1.0:
         return T.copy()
     return np.asarray(gtsam.Pose3.Expmap(fraction * gtsam.Pose3.Logmap(gtsam.Pose3(T))).matrix())
+
+
+def _similarity(kf: KeyframeState) -> np.ndarray:
+    """Camera-to-world Sim(3) of a keyframe: its pose with the scale corrections gave it."""
+    pose = invert(kf.T_cw)
+    pose[:3, :3] *= kf.scale
+    return pose
 
 
 def _without_scale(matrix: np.ndarray) -> np.ndarray:

@@ -42,6 +42,11 @@ class KeyframeState:
     output: Keyframe
     #: (N,) keypoints on objects that move on their own (DynaSLAM's masks): never mapped.
     dynamic: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    #: How much loop corrections have scaled the map around this keyframe since it was made (its
+    #: backend node's scale; a new keyframe starts with its predecessor's). The output pose carries
+    #: it as a Sim(3) and the output points3d are divided by it, so both stay in the units the
+    #: keyframe's odometry step and loop constraints were measured in.
+    scale: float = 1.0
 
 
 @dataclass
