@@ -68,6 +68,18 @@ def test_initialisation_recovers_relative_pose(loop_frames: tuple[CameraIntrinsi
         initializer.try_frame(first.index, first.timestamp, extractor.extract(first.gray), first.image)
         is None
     )
+    # One frame alone never initialises: its direction of motion must agree with the frames before.
+    assert (
+        initializer.try_frame(second.index, second.timestamp, extractor.extract(second.gray), second.image)
+        is None
+    )
+    initializer.reset()
+    initializer.try_frame(first.index, first.timestamp, extractor.extract(first.gray), first.image)
+    for frame in frames[10:12]:
+        assert (
+            initializer.try_frame(frame.index, frame.timestamp, extractor.extract(frame.gray), frame.image)
+            is None
+        )
     init = initializer.try_frame(second.index, second.timestamp, extractor.extract(second.gray), second.image)
     assert init is not None
     assert init.reference_index == 0

@@ -59,6 +59,14 @@ class InitSettings:
     min_parallax_deg: float = 1.0
     #: The best motion hypothesis must have this many times the good points of the runner-up.
     ambiguity_ratio: float = 1.4
+    #: ... and its direction of motion (the camera centre seen from the reference) must lie within
+    #: ``max_direction_change_deg`` of the best hypotheses of the ``stable_frames`` - 1 frames
+    #: before. During a turn with little translation the essential matrix's translation is poorly
+    #: determined: synthetic loop seeds 0 and 1 initialised 87 and 99 deg off the true direction
+    #: (after 3-4 frames at 1.2 deg/frame, two frames in a row agreeing on the wrong one), which
+    #: distorted the first map; with three agreeing frames every synthetic start is within 13 deg.
+    max_direction_change_deg: float = 10.0
+    stable_frames: int = 3
     #: Reprojection error (px) of a triangulated point (sqrt of chi2(2 dof, 95 %) = 2.45).
     max_reprojection_px: float = 2.45
     #: Replace the reference frame after this many frames without an initialisation.

@@ -6,8 +6,10 @@ seeded USAC. The homography is the model when it explains a large share of the i
 (H / (H + E) > 0.45: a planar scene or a rotation), else the essential matrix. Every motion its
 decomposition allows is scored by triangulating the inliers and counting points that lie in front
 of both cameras, reproject within 2.45 px and see a parallax; the best must clearly beat the
-runner-up, have enough points and a median parallax of at least 1 deg. Otherwise the frame is
-rejected and the next one tried; after too few matches or too many tries the reference moves on.
+runner-up, have enough points and a median parallax of at least 1 deg, and its direction of motion
+must agree with the previous frame's best hypothesis (the camera moves smoothly, a poorly determined
+translation does not). Otherwise the frame is rejected and the next one tried; after too few matches
+or too many tries the reference moves on.
 
 The map frame is the reference camera and the first baseline has length 1 (the map's scale).
 A fundamental matrix fitted to the same matches tells whether the intrinsics are plausible: with
@@ -65,9 +67,12 @@ class Initializer:
         self.seed = seed
         self.max_flow = settings.max_flow_fraction * diagonal
         self.reference: _Reference | None = None
+        #: Directions (in the reference camera) of the last frames' best motion hypotheses.
+        self.directions: list[np.ndarray] = []
 
     def reset(self) -> None:
         self.reference = None
+        self.directions = []
 
     def try_frame(
         self, index: int, timestamp: float, features: Features, image: np.ndarray
@@ -97,6 +102,7 @@ class Initializer:
 
     def _set_reference(self, index: int, timestamp: float, features: Features, image: np.ndarray) -> None:
         self.reference = _Reference(index, timestamp, features, image)
+        self.directions = []
 
     def _reconstruct(
         self, x1: np.ndarray, x2: np.ndarray, index: int
@@ -153,6 +159,8 @@ class Initializer:
         scored.sort(key=lambda item: -item[0])
         best_count, T_cw, good, points_w, parallax = scored[0]
         runner_up = scored[1][0] if len(scored) > 1 else 0
+        direction = -T_cw[:3, :3].T @ T_cw[:3, 3]  # the camera centre seen from the reference
+        self.directions = [*self.directions, direction][-s.stable_frames :]
         # Points seen at a grazing parallax have poorly known depth: leave them for later keyframes.
         good &= parallax >= s.min_parallax_deg / 4
         best_count = int(good.sum())
@@ -168,6 +176,10 @@ class Initializer:
             log.debug(
                 "frame %d: init rejected (%s, ambiguous: %d vs %d)", index, model, best_count, runner_up
             )
+            return None
+        changes = [float(np.degrees(np.arccos(np.clip(d @ direction, -1, 1)))) for d in self.directions[:-1]]
+        if len(changes) < s.stable_frames - 1 or max(changes, default=0.0) > s.max_direction_change_deg:
+            log.debug("frame %d: init rejected (%s, direction not yet stable: %s)", index, model, changes)
             return None
         log.info(
             "initialised on frame %d (%s: %d points, median parallax %.2f deg, E/F inliers %.2f)",
