@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from evo.core.lie_algebra import so3_log_angle
 
+from slam_backend.lie import as_4x4
+
 
 def gt_references(pairs: np.ndarray) -> dict[int, np.ndarray]:
     """Query frame -> sorted reference frames, from (query, ref) pairs."""
@@ -108,8 +110,7 @@ def loop_pose_error(gt_match: np.ndarray, gt_query: np.ndarray, relative: np.nda
     unknown scale) is from the GT relative pose of the two cameras (camera-to-world, metres):
     rotation angle, and angle between the translation directions (the scale is not compared)."""
     truth = np.linalg.inv(gt_match) @ gt_query
-    scale = float(np.cbrt(np.linalg.det(relative[:3, :3])))
-    rotation = relative[:3, :3] / scale
+    rotation = as_4x4(relative)[:3, :3]
     rotation_deg = float(np.degrees(so3_log_angle(rotation.T @ truth[:3, :3])))
     t_true, t_est = truth[:3, 3], relative[:3, 3]
     norms = float(np.linalg.norm(t_true) * np.linalg.norm(t_est))

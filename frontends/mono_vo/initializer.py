@@ -7,9 +7,9 @@ seeded USAC. The homography is the model when it explains a large share of the i
 decomposition allows is scored by triangulating the inliers and counting points that lie in front
 of both cameras, reproject within 2.45 px and see a parallax; the best must clearly beat the
 runner-up, have enough points and a median parallax of at least 1 deg, and its direction of motion
-must agree with the previous frame's best hypothesis (the camera moves smoothly, a poorly determined
-translation does not). Otherwise the frame is rejected and the next one tried; after too few matches
-or too many tries the reference moves on.
+must agree with the best hypotheses of the frames just before (``stable_frames`` in a row: the
+camera moves smoothly, a poorly determined translation does not). Otherwise the frame is rejected
+and the next one tried; after too few matches or too many tries the reference moves on.
 
 The map frame is the reference camera and the first baseline has length 1 (the map's scale).
 A fundamental matrix fitted to the same matches tells whether the intrinsics are plausible: with
