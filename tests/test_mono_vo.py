@@ -279,3 +279,40 @@ def test_a_correction_applied_twice_moves_the_map_once(
         np.testing.assert_allclose(kf.pose, pose, atol=1e-9)
         np.testing.assert_allclose(kf.points3d, points3d, atol=1e-9)
     np.testing.assert_allclose(frontend.segment_map.points.positions, points, atol=1e-9)
+
+
+def test_a_graded_correction_moves_the_local_map_rigidly(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    """A pose graph spreads a loop's rotation and scale over every odometry edge. The keyframes
+    tracking and local BA use must move as one similarity, or the next local BA, anchored on
+    keyframes turned a little differently, rescales the window and the map loses the loop's scale."""
+    camera, frames = loop_frames
+    frontend = create(camera)
+    run(frontend, frames[:120])
+    keyframes = frontend.keyframes()
+    local = frontend._local_map_keyframes()
+    assert len(keyframes) > local + 2
+    before = [kf.pose.copy() for kf in keyframes]
+    poses = {}
+    for kf in keyframes:
+        share = kf.id / keyframes[-1].id
+        S = np.eye(4)
+        S[:3, :3] = (1 + 0.1 * share) * Rotation.from_euler("z", 3.0 * share, degrees=True).as_matrix()
+        poses[kf.id] = S @ kf.pose
+    frontend.apply_correction(poses)
+    after = [kf.pose for kf in frontend.keyframes()]
+    np.testing.assert_allclose(after[-1], poses[keyframes[-1].id], atol=1e-9)
+    newest = after[-1] @ np.linalg.inv(before[-1])
+    for b, a in zip(before[-local:], after[-local:], strict=True):
+        np.testing.assert_allclose(a, newest @ b, atol=1e-9)
+    # Older keyframes keep their own corrections.
+    np.testing.assert_allclose(after[0], poses[keyframes[0].id], atol=1e-9)
+
+    def baselines() -> np.ndarray:
+        centres = np.array([kf.pose[:3, 3] for kf in frontend.keyframes()[-local:]])
+        return np.linalg.norm(np.diff(centres, axis=0), axis=1)
+
+    corrected = baselines()
+    frontend._bundle_adjust()
+    np.testing.assert_allclose(baselines(), corrected, rtol=0.01)

@@ -293,7 +293,15 @@ class MonoVo:
         keyframe id, this segment's map frame): each keyframe to its pose, each map point with the
         keyframe that created it, the last frame with the newest keyframe (the constant-velocity
         model's translation scaled with it). Tracking then continues in the corrected map, so the
-        next odometry steps agree with the loop instead of pulling the map back."""
+        next odometry steps agree with the loop instead of pulling the map back.
+
+        The newest keyframes, those tracking and local bundle adjustment use, all move with the
+        newest keyframe's correction as one rigid similarity: the pose graph spreads the loop's
+        rotation over every odometry edge, and that small per-keyframe turn changes what short
+        baselines triangulate. Measured on synthetic loop 1: with per-keyframe corrections the
+        next local bundle adjustment, anchored on the older corrected keyframes, pulled the window
+        back to its old scale (6 % of the 7 % the loop asked for), and every later keyframe
+        inherited that wrong scale step."""
         corrections: dict[int, np.ndarray] = {}
         for kf in self.segment_map.keyframes:
             if kf.id in poses:
@@ -301,12 +309,17 @@ class MonoVo:
                 corrections[kf.id] = np.asarray(poses[kf.id], dtype=np.float64) @ np.linalg.inv(
                     _similarity(kf)
                 )
+        local = [kf.id for kf in self.segment_map.keyframes[-self._local_map_keyframes() :]]
+        newest_corrected = max((i for i in local if i in corrections), default=None)
+        if newest_corrected is not None:
+            for kf_id in local:
+                corrections[kf_id] = corrections[newest_corrected]
         if not corrections:
             return
         for kf in self.segment_map.keyframes:
             if kf.id in corrections:
                 kf.T_cw = invert(_without_scale(corrections[kf.id] @ invert(kf.T_cw)))
-                kf.scale = float(np.cbrt(np.linalg.det(np.asarray(poses[kf.id])[:3, :3])))
+                kf.scale *= float(np.cbrt(np.linalg.det(corrections[kf.id][:3, :3])))
         points = self.segment_map.points
         known = np.array(sorted(corrections))
         newest = self.segment_map.keyframes[-1].id
@@ -328,6 +341,10 @@ class MonoVo:
         self.velocity[:3, 3] *= float(np.cbrt(np.linalg.det(last[:3, :3])))
         for kf in self.segment_map.keyframes:
             self._sync_output(kf)
+
+    def _local_map_keyframes(self) -> int:
+        """How many of the newest keyframes tracking and local bundle adjustment touch."""
+        return max(self.config.tracking.local_keyframes, self.config.ba.window + self.config.ba.max_fixed)
 
     def set_dynamic_objects(self, provider: Callable[[Frame], Sequence[Sequence[float]]] | None) -> None:
         """Keypoints of a new keyframe inside any box ``provider(frame)`` returns (objects that move
