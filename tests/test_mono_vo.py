@@ -316,3 +316,32 @@ def test_a_graded_correction_moves_the_local_map_rigidly(
     corrected = baselines()
     frontend._bundle_adjust()
     np.testing.assert_allclose(baselines(), corrected, rtol=0.01)
+
+
+def test_tracked_points_in_a_narrow_strip_make_a_keyframe(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    """Map points seen only in one strip of the view barely fix the translation: a keyframe maps the
+    rest of the view, once ``narrow_min_interval`` has passed since the last one."""
+    from frontends.mono_vo.tracker import PoseEstimate
+
+    camera, frames = loop_frames
+    only_spread = ["keyframes.tracked_ratio=0", "keyframes.min_tracked_share=0"]
+    frontend = create(camera, only_spread)
+    run(frontend, frames[:40])
+    last = frontend.segment_map.keyframes[-1]
+    ids = frontend.segment_map.live_ids(last)
+    observed = np.flatnonzero(ids >= 0)
+    x = last.features.points[observed, 0]
+    assert np.ptp(x) > 0.5 * camera.width
+
+    def needs_keyframe(keypoints: np.ndarray, after_s: float) -> bool:
+        frame = dataclasses.replace(frames[0], timestamp=last.timestamp + after_s)
+        estimate = PoseEstimate(last.T_cw, keypoints, ids[keypoints])
+        return frontend._needs_keyframe(frame, last.features, estimate)
+
+    strip = observed[x < x.min() + 0.3 * camera.width]
+    assert len(strip) >= 30
+    assert not needs_keyframe(observed, 0.2)
+    assert needs_keyframe(strip, 0.2)
+    assert not needs_keyframe(strip, 0.05)

@@ -109,6 +109,14 @@ class KeyframeSettings:
     #: ... or this much time passed since the last keyframe (s), and never sooner than min_interval.
     max_interval: float = 0.5
     min_interval: float = 0.0
+    #: ... or, at least ``narrow_min_interval`` s after the last keyframe, the tracked points span
+    #: less than this share of the image width or height. A walking person or a turn into unmapped
+    #: space can leave the map visible only in one strip, where the pose's translation is barely
+    #: constrained; on the synthetic scenes tracking then lost the map's scale within ~10 frames
+    #: unless a keyframe mapped the rest of the view. (Without the interval, keyframes a frame apart
+    #: give local BA no baseline.)
+    min_tracked_spread: float = 0.45
+    narrow_min_interval: float = 0.1
     #: Earlier keyframes the new keyframe triangulates fresh points with: the newest ones among the
     #: last ``triangulation_window`` whose baseline is at least ``min_baseline_ratio`` of the new
     #: keyframe's median depth (ORB-SLAM: 0.01). Keyframes that follow each other closely (a near

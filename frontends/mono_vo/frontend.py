@@ -181,7 +181,7 @@ class MonoVo:
             return None
         self.velocity = _fraction_of_motion(estimate.T_cw @ invert(self.T_cw_last), 1.0 / steps)
         keyframe = None
-        if self._needs_keyframe(frame, estimate):
+        if self._needs_keyframe(frame, features, estimate):
             keyframe = self._timed("keyframe", self._add_keyframe, frame, features, estimate)
         return self._tracked(frame, estimate.T_cw, "tracking", keyframe)
 
@@ -215,7 +215,7 @@ class MonoVo:
 
     # -- keyframes ---------------------------------------------------------------------------------
 
-    def _needs_keyframe(self, frame: Frame, estimate: PoseEstimate) -> bool:
+    def _needs_keyframe(self, frame: Frame, features: Features, estimate: PoseEstimate) -> bool:
         s = self.config.keyframes
         last = self.segment_map.keyframes[-1]
         elapsed = frame.timestamp - last.timestamp
@@ -226,11 +226,16 @@ class MonoVo:
         observations = self.segment_map.points.observations[ids[ids >= 0]]
         established = int((observations >= min(3, len(self.segment_map.keyframes))).sum())
         tracked = len(estimate.keypoint_idx)
+        spread = np.ptp(features.points[estimate.keypoint_idx], axis=0) if tracked else np.zeros(2)
+        narrow = elapsed >= s.narrow_min_interval and bool(
+            (spread < s.min_tracked_spread * np.array([self.camera.width, self.camera.height])).any()
+        )
         # The second test catches fast forward motion, where the map thins out before points establish.
         return (
             tracked < s.tracked_ratio * established
             or tracked < s.min_tracked_share * len(observations)
             or elapsed >= s.max_interval
+            or narrow
         )
 
     def _add_keyframe(self, frame: Frame, features: Features, estimate: PoseEstimate) -> KeyframeState:
