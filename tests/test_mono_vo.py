@@ -22,6 +22,7 @@ from frontends.datasets import open_dataset
 from frontends.mono_vo import MonoVoConfig, create
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.initializer import Initializer
+from frontends.mono_vo.tracker import PoseEstimate
 from frontends.types import CameraIntrinsics, Frame
 
 
@@ -323,8 +324,6 @@ def test_tracked_points_in_a_narrow_strip_make_a_keyframe(
 ) -> None:
     """Map points seen only in one strip of the view barely fix the translation: a keyframe maps the
     rest of the view, once ``narrow_min_interval`` has passed since the last one."""
-    from frontends.mono_vo.tracker import PoseEstimate
-
     camera, frames = loop_frames
     only_spread = ["keyframes.tracked_ratio=0", "keyframes.min_tracked_share=0"]
     frontend = create(camera, only_spread)

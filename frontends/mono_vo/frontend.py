@@ -226,17 +226,18 @@ class MonoVo:
         observations = self.segment_map.points.observations[ids[ids >= 0]]
         established = int((observations >= min(3, len(self.segment_map.keyframes))).sum())
         tracked = len(estimate.keypoint_idx)
-        spread = np.ptp(features.points[estimate.keypoint_idx], axis=0) if tracked else np.zeros(2)
-        narrow = elapsed >= s.narrow_min_interval and bool(
-            (spread < s.min_tracked_spread * np.array([self.camera.width, self.camera.height])).any()
-        )
         # The second test catches fast forward motion, where the map thins out before points establish.
         return (
             tracked < s.tracked_ratio * established
             or tracked < s.min_tracked_share * len(observations)
             or elapsed >= s.max_interval
-            or narrow
+            or (elapsed >= s.narrow_min_interval and self._tracked_in_a_strip(features, estimate))
         )
+
+    def _tracked_in_a_strip(self, features: Features, estimate: PoseEstimate) -> bool:
+        spread = np.ptp(features.points[estimate.keypoint_idx], axis=0)
+        limit = self.config.keyframes.min_tracked_spread * np.array([self.camera.width, self.camera.height])
+        return bool((spread < limit).any())
 
     def _add_keyframe(self, frame: Frame, features: Features, estimate: PoseEstimate) -> KeyframeState:
         previous = self.segment_map.keyframes[-1]
@@ -314,13 +315,13 @@ class MonoVo:
                 corrections[kf.id] = np.asarray(poses[kf.id], dtype=np.float64) @ np.linalg.inv(
                     _similarity(kf)
                 )
+        if not corrections:
+            return
         local = [kf.id for kf in self.segment_map.keyframes[-self._local_map_keyframes() :]]
         newest_corrected = max((i for i in local if i in corrections), default=None)
         if newest_corrected is not None:
             for kf_id in local:
                 corrections[kf_id] = corrections[newest_corrected]
-        if not corrections:
-            return
         for kf in self.segment_map.keyframes:
             if kf.id in corrections:
                 kf.T_cw = invert(_without_scale(corrections[kf.id] @ invert(kf.T_cw)))
