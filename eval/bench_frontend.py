@@ -2,7 +2,9 @@
 
 For each input, in one run: frames per second of the frontend's own ORB extractor alone on the
 frames (held in memory, so decoding is not timed), then of the whole frontend on the same frames,
-their ratio, the per-stage milliseconds per frame, and the accuracy: evo APE (translation RMSE)
+fed as ``symbio run`` feeds it (``with_lookahead``: each frame's ORB runs on a worker thread while
+the previous frame is tracked), their ratio, the per-stage milliseconds per frame ("orb" = the wait
+for the features), and the accuracy: evo APE (translation RMSE)
 after Sim(3) Umeyama alignment of every posed frame of segment 0 (keyframes with their
 bundle-adjusted poses), relative to the ground-truth path length.
 
@@ -30,7 +32,7 @@ import numpy as np
 from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 
-from frontends.base import TrackResult
+from frontends.base import TrackResult, with_lookahead
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
 from frontends.mono_vo import create
@@ -67,7 +69,7 @@ def evaluate(
     frontend = create(camera, overrides)
     results: dict[int, TrackResult] = {}
     start = time.perf_counter()
-    for frame in frames:
+    for frame in with_lookahead(frames, frontend):
         result = frontend.track(frame)
         results[frame.index] = result
         results.update((late.frame_index, late) for late in result.backfilled)

@@ -94,7 +94,14 @@ from eval.report import (
     write_report,
 )
 from eval.viewer import RerunViewer
-from frontends.base import FRONTENDS, CorrectableFrontend, Frontend, MaskingFrontend, TrackResult
+from frontends.base import (
+    FRONTENDS,
+    CorrectableFrontend,
+    Frontend,
+    MaskingFrontend,
+    TrackResult,
+    with_lookahead,
+)
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import config_to_dict, load_config, read_yaml_mapping
 from frontends.datasets import Dataset, open_dataset
@@ -243,7 +250,7 @@ def stream_frames(
 ) -> None:
     """Each frame through the frontend and loop closing; ``after_frame`` (e.g. a checkpoint) runs
     once the frame is done, outside the timings."""
-    for frame in frames:
+    for frame in with_lookahead(frames, frontend):
         start = time.perf_counter()
         result = track_frame(frontend, frame, run)
         run.add(result)

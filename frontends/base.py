@@ -12,7 +12,7 @@ camera intrinsics and ``--set key=value`` overrides / a YAML file.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -71,6 +71,36 @@ class MaskingFrontend(Frontend, Protocol):
         """``provider(frame)`` gives the boxes (x0, y0, x1, y1) of moving objects in a frame the
         frontend is about to map (a keyframe); features inside them are not mapped."""
         ...
+
+
+@runtime_checkable
+class PrefetchingFrontend(Frontend, Protocol):
+    """A frontend that can start a frame's work that needs no tracking state (feature extraction)
+    before the frame's turn, on another core."""
+
+    def prefetch(self, frame: Frame) -> None:
+        """``frame`` is the next to be tracked after the current one; begin its stateless work."""
+        ...
+
+
+def with_lookahead(frames: Iterable[Frame], frontend: Frontend) -> Iterator[Frame]:
+    """``frames`` one by one; a ``PrefetchingFrontend`` hears of each frame one step ahead, so the
+    next frame's features are extracted while the current one is tracked."""
+    if not isinstance(frontend, PrefetchingFrontend):
+        yield from frames
+        return
+    iterator = iter(frames)
+    current = next(iterator, None)
+    while current is not None:
+        try:
+            following = next(iterator, None)
+        except BaseException:
+            yield current  # the frame already read is tracked before the reader's error ends the run
+            raise
+        if following is not None:
+            frontend.prefetch(following)
+        yield current
+        current = following
 
 
 class FrontendFactory(Protocol):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +17,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from eval.bench_frontend import evaluate
-from frontends.base import FRONTENDS, Frontend, TrackResult
+from frontends.base import FRONTENDS, Frontend, TrackResult, with_lookahead
 from frontends.datasets import open_dataset
+from frontends.errors import DatasetError
 from frontends.mono_vo import MonoVoConfig, create
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.initializer import Initializer
@@ -219,6 +220,40 @@ def test_deterministic(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> Non
     for a, b in zip(first, second, strict=True):
         if a is not None and b is not None:
             np.testing.assert_array_equal(a, b)
+
+
+def test_prefetched_features_change_nothing(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    """Features extracted one frame ahead (``symbio run``'s feed) give the inline run's poses; a
+    prefetch for a frame that never comes next is ignored."""
+    camera, frames = loop_frames
+    inline = run(create(camera), frames[:60])
+    frontend = create(camera)
+    ahead = [frontend.track(frame) for frame in with_lookahead(frames[:60], frontend)]
+    frontend.prefetch(frames[100])
+    ahead.append(frontend.track(frames[60]))
+    inline.append(run(create(camera), frames[:61])[-1])
+    assert sum(r.pose is not None for r in inline) > 40
+    for a, b in zip(inline, ahead, strict=True):
+        assert a.state == b.state
+        if a.pose is not None:
+            np.testing.assert_array_equal(a.pose, b.pose)
+
+
+def test_lookahead_tracks_the_frame_read_before_a_reader_error(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    camera, frames = loop_frames
+
+    def reader() -> Iterator[Frame]:
+        yield from frames[:3]
+        raise DatasetError("rgb/000003.png", "cannot decode")
+
+    frontend = create(camera)
+    seen = []
+    with pytest.raises(DatasetError, match="000003"):
+        for frame in with_lookahead(reader(), frontend):
+            seen.append(frontend.track(frame).frame_index)
+    assert seen == [0, 1, 2]
 
 
 @pytest.mark.shared

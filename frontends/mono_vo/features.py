@@ -17,7 +17,10 @@ at the right scale. ``consistent_rotation`` is ORB-SLAM's orientation histogram 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -205,3 +208,42 @@ def match_descriptors(
     accept = (rows[:, 2] <= max_hamming) & (rows[:, 2] < ratio * rows[:, 3])
     rows = rows[accept]
     return unique_targets(rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64), rows[:, 2])
+
+
+class PrefetchingExtractor:
+    """An ``OrbExtractor`` that can run one frame ahead on a worker thread.
+
+    OpenCV releases the GIL, so the next frame's ORB runs on the second core while this frame is
+    tracked (bundle adjustment in GTSAM holds the GIL, extraction does not need it). Every extraction
+    runs on the one worker thread, because a ``cv2.ORB`` must not be used by two threads at once;
+    the features are those of inline extraction, so runs stay deterministic. Pending work does not
+    pickle (checkpoints): a restored extractor simply extracts the next frame when it comes.
+    """
+
+    def __init__(self, extractor: OrbExtractor) -> None:
+        self.extractor = extractor
+        self._worker: ThreadPoolExecutor | None = None
+        #: Frames handed to ``prefetch`` (matched by identity), oldest first, with their features
+        #: being computed: the current frame's and the next one's.
+        self._pending: list[tuple[object, Future[Features]]] = []
+
+    def prefetch(self, frame: object, gray: Callable[[], np.ndarray]) -> None:
+        self._pending = [*self._pending[-1:], (frame, self._submit(gray))]
+
+    def extract(self, frame: object, gray: Callable[[], np.ndarray]) -> Features:
+        for position, (pending, future) in enumerate(self._pending):
+            if pending is frame:
+                del self._pending[: position + 1]
+                return future.result()
+        return self._submit(gray).result()
+
+    def _submit(self, gray: Callable[[], np.ndarray]) -> Future[Features]:
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(1, thread_name_prefix="orb")
+        return self._worker.submit(lambda: self.extractor.extract(gray()))
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"extractor": self.extractor}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["extractor"])  # type: ignore[misc]
