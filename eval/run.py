@@ -99,6 +99,7 @@ from frontends.base import (
     CorrectableFrontend,
     Frontend,
     MaskingFrontend,
+    SettlingFrontend,
     TrackResult,
     with_lookahead,
 )
@@ -260,6 +261,9 @@ def stream_frames(
             viewer.frame(frame, result)
         if after_frame is not None:
             after_frame(frame)
+    start = time.perf_counter()
+    loop_closing.finish()  # the last keyframes settle when the stream ends
+    run.total_seconds += time.perf_counter() - start
 
 
 def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
@@ -317,6 +321,8 @@ def run_odometry(
         and isinstance(frontend, CorrectableFrontend)
     ):
         closing.on_correction = frontend.apply_correction
+    if closing.config.settle_keyframes is None and isinstance(frontend, SettlingFrontend):
+        closing.settle_keyframes = frontend.keyframes_in_flux
     if closing.objects is not None and isinstance(frontend, MaskingFrontend):
         frontend.set_dynamic_objects(closing.movable_boxes)
     if viewer is not None:
@@ -346,6 +352,7 @@ def run_odometry(
     except BaseException:
         run.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
+        closing.finish()
         write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
         raise
     figures = write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)

@@ -64,6 +64,16 @@ class CorrectableFrontend(Frontend, Protocol):
 
 
 @runtime_checkable
+class SettlingFrontend(Frontend, Protocol):
+    """A frontend that keeps refining its newest keyframes' poses after handing them out (a local
+    bundle adjustment window): loop closing reads a keyframe's odometry step only once this many
+    newer keyframes of its segment exist."""
+
+    @property
+    def keyframes_in_flux(self) -> int: ...
+
+
+@runtime_checkable
 class MaskingFrontend(Frontend, Protocol):
     """A frontend that keeps objects which move on their own out of its map (DynaSLAM-style)."""
 

@@ -4,9 +4,9 @@
 results it backfills) and keeps two trajectories of every posed frame:
 
 * **odometry**: keyframe poses chained from the odometry steps the backend receives (the step of a
-  keyframe is its pose in the previous keyframe's frame, read when it arrives, i.e. after the
-  frontend's bundle adjustment of the previous one), and each frame anchored to the newest keyframe
-  of its segment at the time it was posed (``anchor ∘ relative``);
+  keyframe is its pose in the previous keyframe's frame, read once the keyframe has *settled*, see
+  below), and each frame anchored to the newest keyframe of its segment at the time it was posed
+  (``anchor ∘ relative``);
 * **loop-closed**: the same frames anchored to the backend's current Sim(3) keyframe estimates.
 
 With no accepted loop the two coincide, so "the trajectory is unchanged" is a measurable claim.
@@ -18,6 +18,15 @@ threshold (a raising verifier counts as a rejection with the error as reason; on
 than ``verify_timeout_s`` as a rejection with reason "timeout ..."), and one backend event
 with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
 the final decision; ``loops()`` reports the current decision of every candidate.
+
+Settling: a frontend's local bundle adjustment keeps moving its newest keyframes after it hands
+them out (``SettlingFrontend.keyframes_in_flux``, mono-vo: its BA window of 6). A keyframe goes to
+the backend and the loop detector only once that many newer keyframes of its segment exist (or its
+segment ended, or ``finish()``), so its odometry step is read from poses that no longer change.
+Read at arrival instead, the steps of the first keyframes after a monocular initialisation were
+off by 0.6-0.8 deg and 20-35 % in scale (synthetic loop 0, keyframes 2-5; 0.04-0.13 deg once
+adjusted), and PCM then rejected the correct loops that reached back to them as inconsistent with
+that chain (23 of 36 verified loops). Loops are found ``keyframes_in_flux`` keyframes later.
 
 A new map segment (the frontend could not relocalise) is linked to the previous keyframe by an
 identity step with a very loose covariance (``segment_link_*``): the map stays one graph, and a loop
@@ -95,8 +104,13 @@ class LoopClosingConfig:
     #: (fault injection, demo scene: ATE 0.225 -> 0.561 m). 1: the first such loop goes in at once.
     bridge_support: int = 2
     bridge_confidence: float = 0.999
+    #: Newer keyframes a keyframe waits for before its odometry step is read and it is searched
+    #: for loops (see "Settling"); None: the frontend's ``keyframes_in_flux`` (0 if it has none).
+    settle_keyframes: int | None = None
 
     def __post_init__(self) -> None:
+        if self.settle_keyframes is not None and self.settle_keyframes < 0:
+            raise ConfigError(f"loop_closing: settle_keyframes must be >= 0, got {self.settle_keyframes}")
         if not self.verify_timeout_s > 0:
             raise ConfigError(f"loop_closing: verify_timeout_s must be positive, got {self.verify_timeout_s}")
         if self.bridge_support < 1 or not 0.0 < self.bridge_confidence < 1.0:
@@ -192,6 +206,12 @@ class LoopClosing:
         self.on_correction = on_correction
         self.on_keyframe = on_keyframe
         self.counters = LoopClosingCounters()
+        #: See "Settling"; ``symbio run`` sets it from the frontend when the config leaves it open.
+        self.settle_keyframes = config.settle_keyframes or 0
+        #: Keyframes received but not settled yet (oldest first), and the newest keyframe received
+        #: per segment (what frames are anchored to).
+        self._unsettled: list[Keyframe] = []
+        self._newest_received: dict[int, Keyframe] = {}
         self._keyframes: dict[int, Keyframe] = {}
         self._odometry_pose: dict[int, np.ndarray] = {}
         self._frames: dict[int, _PosedFrame] = {}
@@ -239,19 +259,41 @@ class LoopClosing:
         records += self._add_one(result)
         return records
 
+    def finish(self) -> list[LoopRecord]:
+        """Settle the keyframes still waiting (the stream ended); returns their loop records."""
+        records: list[LoopRecord] = []
+        while self._unsettled:
+            records += self._add_keyframe(self._unsettled.pop(0))
+        return records
+
     def _add_one(self, result: TrackResult) -> list[LoopRecord]:
         records = []
-        if result.keyframe is not None and result.keyframe.id not in self._keyframes:
-            records = self._add_keyframe(result.keyframe)
+        keyframe = result.keyframe
+        if keyframe is not None and not self._received(keyframe.id):
+            records = self._receive(keyframe)
         if result.pose is not None:
-            anchor_id = self._latest_keyframe.get(result.segment)
-            if anchor_id is None:  # no keyframe in this segment yet: nothing to anchor to
+            anchor = self._newest_received.get(result.segment)
+            if anchor is None:  # no keyframe in this segment yet: nothing to anchor to
                 return records
-            anchor = self._keyframes[anchor_id]
             relative = np.linalg.inv(anchor.pose) @ result.pose
             self._frames[result.frame_index] = _PosedFrame(
-                result.frame_index, result.timestamp, anchor_id, relative
+                result.frame_index, result.timestamp, anchor.id, relative
             )
+        return records
+
+    def _received(self, keyframe_id: int) -> bool:
+        return keyframe_id in self._keyframes or any(k.id == keyframe_id for k in self._unsettled)
+
+    def _receive(self, keyframe: Keyframe) -> list[LoopRecord]:
+        """Queue a new keyframe; settle those with ``settle_keyframes`` newer ones (or whose
+        segment ended)."""
+        records: list[LoopRecord] = []
+        while self._unsettled and self._unsettled[0].segment != keyframe.segment:
+            records += self._add_keyframe(self._unsettled.pop(0))
+        self._unsettled.append(keyframe)
+        self._newest_received[keyframe.segment] = keyframe
+        while len(self._unsettled) > self.settle_keyframes:
+            records += self._add_keyframe(self._unsettled.pop(0))
         return records
 
     def _add_keyframe(self, keyframe: Keyframe) -> list[LoopRecord]:
@@ -551,6 +593,8 @@ class LoopClosing:
 
     def frame_poses(self, corrected: bool) -> list[tuple[int, float, np.ndarray]]:
         """(frame index, timestamp, camera-to-world pose) of every posed frame, in frame order."""
+        if self._unsettled:
+            raise RuntimeError(f"{len(self._unsettled)} keyframe(s) not settled yet: call finish() first")
         anchors = self._sim3_estimates() if corrected else self._odometry_pose
         poses = []
         for index in sorted(self._frames):

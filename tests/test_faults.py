@@ -339,7 +339,10 @@ def test_false_loops_are_rejected_and_the_map_stays_as_good(
         assert np.linalg.norm(query[:3, 3] - match[:3, 3]) >= 2.0
     assert figures["loops_accepted"] == figures["false_loops_accepted"] == 0
     assert figures["ate_rmse_after"] == pytest.approx(clean_run["ate_rmse_after"], rel=0.05)
-    assert figures["ate_rmse_after_all"] == pytest.approx(clean_run["ate_rmse_after_all"], rel=0.05)
+    # Nothing moved the map: the loop-closed trajectory is the odometry, both segments included (the
+    # clean run's true loops join the two segments, which no false loop may do).
+    final, odometry = read_tum(out / TRAJECTORY_FILE), read_tum(out / ODOMETRY_FILE)
+    np.testing.assert_allclose(final.positions_xyz, odometry.positions_xyz, atol=1e-9)
 
 
 def test_verified_false_loops_are_rejected_by_the_backend() -> None:

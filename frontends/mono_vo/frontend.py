@@ -115,6 +115,11 @@ class MonoVo:
             self.mode = "lost"
         return self._timed("relocalise", self._relocalise, frame, features, tree)
 
+    @property
+    def keyframes_in_flux(self) -> int:
+        """Local bundle adjustment moves the newest ``ba.window`` keyframes; older ones stay put."""
+        return self.config.ba.window if self.config.ba.enabled else 0
+
     def keyframes(self) -> list[Keyframe]:
         for kf in self.segment_map.keyframes:
             self._sync_output(kf)
