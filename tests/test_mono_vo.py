@@ -22,6 +22,7 @@ from frontends.datasets import open_dataset
 from frontends.errors import DatasetError
 from frontends.mono_vo import MonoVoConfig, create
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
+from frontends.mono_vo.frontend import covariance_inflation
 from frontends.mono_vo.initializer import Initializer
 from frontends.mono_vo.tracker import PoseEstimate
 from frontends.types import CameraIntrinsics, Frame
@@ -126,6 +127,33 @@ def test_keyframe_contents(loop_frames: tuple[CameraIntrinsics, list[Frame]]) ->
         assert kf.odometry_covariance is not None and kf.odometry_covariance.shape == (7, 7)
         assert (np.linalg.eigvalsh(kf.odometry_covariance) > 0).all()
     np.testing.assert_allclose(keyframes[0].pose, np.eye(4), atol=1e-6)
+
+
+def test_odometry_covariance_grows_when_keyframes_share_few_points(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    settings = MonoVoConfig().keyframes
+    reference = settings.covariance_reference_points
+    assert covariance_inflation(reference, settings) == covariance_inflation(5 * reference, settings) == 1.0
+    assert covariance_inflation(reference // 2, settings) == pytest.approx(2.0**settings.covariance_exponent)
+    assert covariance_inflation(0, settings) == settings.max_covariance_inflation
+    camera, frames = loop_frames
+    frontend = create(camera)
+    run(frontend, frames[:60])
+    segment = frontend.segment_map
+    for previous, current in zip(segment.keyframes, segment.keyframes[1:], strict=False):
+        a, b = segment.live_ids(previous), segment.live_ids(current)
+        shared = segment.shared_points(previous, current)
+        assert shared == len(set(a[a >= 0]) & set(b[b >= 0])) > 0
+        # Counted when the keyframe was made; culling can only have removed shared points since.
+        assert current.output.odometry_covariance is not None
+        sigma = np.sqrt(current.output.odometry_covariance[0, 0])
+        reference_sigma = np.radians(settings.rotation_sigma_deg)
+        assert (
+            reference_sigma * (1 - 1e-9)
+            <= sigma
+            <= reference_sigma * covariance_inflation(shared, settings) * (1 + 1e-9)
+        )
 
 
 def test_projection_matching_respects_scale_and_rotation() -> None:

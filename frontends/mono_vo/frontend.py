@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.base import TrackingState, TrackResult
-from frontends.mono_vo.config import MonoVoConfig
+from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor
 from frontends.mono_vo.geometry import invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
@@ -147,7 +147,7 @@ class MonoVo:
         self.segment_map.observe(first, init.reference_idx[static], ids)
         self.segment_map.observe(second, init.current_idx[static], ids)
         self._bundle_adjust()
-        second.output.odometry_covariance = self._odometry_covariance(first, second, len(ids))
+        second.output.odometry_covariance = self._odometry_covariance(first, second)
         steps = max(1, frame.index - init.reference_index)
         self.velocity = _fraction_of_motion(second.T_cw @ invert(first.T_cw), 1.0 / steps)
         self.mode = "tracking"
@@ -262,9 +262,7 @@ class MonoVo:
             )  # fmt: skip
         self._bundle_adjust()
         self.segment_map.cull(keyframe.id)
-        keyframe.output.odometry_covariance = self._odometry_covariance(
-            previous, keyframe, len(estimate.keypoint_idx)
-        )
+        keyframe.output.odometry_covariance = self._odometry_covariance(previous, keyframe)
         return keyframe
 
     def _triangulation_neighbours(
@@ -401,12 +399,11 @@ class MonoVo:
                 f"(expected < {check.max_median_reprojection_px} px)"
             )
 
-    def _odometry_covariance(
-        self, previous: KeyframeState, current: KeyframeState, points: int
-    ) -> np.ndarray:
-        """Covariance of the Sim(3) motion between two keyframes: rotation, translation, log-scale."""
+    def _odometry_covariance(self, previous: KeyframeState, current: KeyframeState) -> np.ndarray:
+        """Covariance of the Sim(3) motion between two keyframes: rotation, translation, log-scale,
+        inflated when they share few map points (``KeyframeSettings.covariance_exponent``)."""
         s = self.config.keyframes
-        inflation = np.sqrt(max(1.0, s.covariance_reference_points / max(points, 1)))
+        inflation = covariance_inflation(self.segment_map.shared_points(previous, current), s)
         distance = float(np.linalg.norm(invert(current.T_cw)[:3, 3] - invert(previous.T_cw)[:3, 3]))
         sigmas = (
             inflation
@@ -469,6 +466,12 @@ class MonoVo:
             return function(*args)
         finally:
             self.stage_seconds[stage] += time.perf_counter() - start
+
+
+def covariance_inflation(shared_points: int, settings: KeyframeSettings) -> float:
+    """Factor on the odometry sigmas of two keyframes that share ``shared_points`` map points."""
+    shortfall = max(1.0, settings.covariance_reference_points / max(shared_points, 1))
+    return float(min(shortfall**settings.covariance_exponent, settings.max_covariance_inflation))
 
 
 def _fraction_of_motion(T: np.ndarray, fraction: float) -> np.ndarray:

@@ -105,6 +105,11 @@ class SegmentMap:
         ids[~valid] = -1
         return ids
 
+    def shared_points(self, first: KeyframeState, second: KeyframeState) -> int:
+        """How many alive map points both keyframes observe (ORB-SLAM's covisibility weight)."""
+        a, b = self.live_ids(first), self.live_ids(second)
+        return len(np.intersect1d(a[a >= 0], b[b >= 0]))
+
     def local_point_ids(self, count: int) -> np.ndarray:
         """Alive points observed by the last ``count`` keyframes."""
         recent = [self.live_ids(kf) for kf in self.keyframes[-count:]]
