@@ -156,6 +156,32 @@ def test_odometry_covariance_grows_when_keyframes_share_few_points(
         )
 
 
+def test_map_points_matched_on_a_moving_object_die(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
+    """Points mapped while the detector missed a walking person move with it: a later keyframe
+    that detects the person must not keep them (here the "person" covers the whole 4th keyframe)."""
+    camera, frames = loop_frames
+    frontend = create(camera)
+    calls: list[int] = []
+
+    def boxes(frame: Frame) -> list[tuple[float, float, float, float]]:
+        calls.append(frame.index)
+        return [(0.0, 0.0, float(camera.width), float(camera.height))] if len(calls) == 4 else []
+
+    frontend.set_dynamic_objects(boxes)
+    segment = frontend.segment_map
+    for frame in frames[:80]:
+        newest = segment.keyframes[-1] if segment.keyframes else None
+        before = int((segment.live_ids(newest) >= 0).sum()) if newest is not None else 0
+        result = frontend.track(frame)
+        if len(calls) == 4 and result.keyframe is not None:
+            assert newest is not None
+            after = int((segment.live_ids(newest) >= 0).sum())
+            assert after < 0.5 * before, (before, after)
+            assert (segment.keyframes[-1].point_ids < 0).all()
+            return
+    pytest.fail("no 4th keyframe")
+
+
 def test_projection_matching_respects_scale_and_rotation() -> None:
     descriptors = np.zeros((3, 32), np.uint8)
     descriptors[1, 0] = 0xFF

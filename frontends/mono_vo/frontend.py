@@ -255,6 +255,9 @@ class MonoVo:
         keyframe = self._new_keyframe(frame, estimate.T_cw, features)
         static = ~keyframe.dynamic[estimate.keypoint_idx]
         self.segment_map.observe(keyframe, estimate.keypoint_idx[static], estimate.point_ids[static])
+        # A map point matched inside a moving object's box lies on it (the object hides what is
+        # behind): it was mapped while the detector missed the object, and it moves.
+        self.segment_map.points.alive[estimate.point_ids[~static]] = False
         for neighbour in self._triangulation_neighbours(keyframe, estimate):
             triangulate_new_points(
                 self.segment_map, keyframe, neighbour, self.K, self.octave_sigma, self.config.keyframes,
