@@ -18,8 +18,9 @@ from scipy.spatial.transform import Rotation
 
 from eval.bench_frontend import evaluate
 from frontends.base import FRONTENDS, Frontend, TrackResult, with_lookahead
+from frontends.config import load_config
 from frontends.datasets import open_dataset
-from frontends.errors import DatasetError
+from frontends.errors import ConfigError, DatasetError
 from frontends.mono_vo import MonoVoConfig, create
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.frontend import covariance_inflation
@@ -154,6 +155,19 @@ def test_odometry_covariance_grows_when_keyframes_share_few_points(
             <= sigma
             <= reference_sigma * covariance_inflation(shared, settings) * (1 + 1e-9)
         )
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "keyframes.covariance_reference_points=0",
+        "keyframes.covariance_exponent=-1",
+        "keyframes.max_covariance_inflation=0.5",
+    ],
+)
+def test_bad_covariance_settings_are_config_errors(override: str) -> None:
+    with pytest.raises(ConfigError, match="keyframes: "):
+        load_config(MonoVoConfig, None, [override])
 
 
 def test_map_points_matched_on_a_moving_object_die(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:

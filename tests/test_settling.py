@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from frontends.base import SettlingFrontend, TrackResult
+from frontends.errors import ConfigError
 from frontends.mono_vo import MonoVo, MonoVoConfig
 from frontends.types import CameraIntrinsics, Keyframe
 from lcd.base import LoopCandidate
@@ -134,3 +135,8 @@ def test_mono_vo_settles_after_its_bundle_adjustment_window() -> None:
     frontend = MonoVo(camera, MonoVoConfig())
     assert isinstance(frontend, SettlingFrontend)
     assert frontend.keyframes_in_flux == MonoVoConfig().ba.window
+
+
+def test_a_negative_settle_count_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="settle_keyframes must be >= 0"):
+        LoopClosingConfig(settle_keyframes=-1)

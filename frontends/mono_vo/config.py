@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from frontends.errors import ConfigError
+
 #: Image area the feature budget and the count thresholds are given for.
 REFERENCE_AREA = 640 * 480
 
@@ -148,6 +150,16 @@ class KeyframeSettings:
     covariance_reference_points: int = 400
     covariance_exponent: float = 2.0
     max_covariance_inflation: float = 100.0
+
+    def __post_init__(self) -> None:
+        if self.covariance_reference_points < 1 or self.covariance_exponent < 0:
+            raise ConfigError(
+                "keyframes: covariance_reference_points must be >= 1 and covariance_exponent >= 0"
+            )
+        if self.max_covariance_inflation < 1:
+            raise ConfigError(
+                f"keyframes: max_covariance_inflation must be >= 1, got {self.max_covariance_inflation}"
+            )
 
 
 @dataclass(frozen=True)
