@@ -6,8 +6,16 @@ results it backfills) and keeps two trajectories of every posed frame:
 * **odometry**: keyframe poses chained from the odometry steps the backend receives (the step of a
   keyframe is its pose in the previous keyframe's frame, read once the keyframe has *settled*, see
   below), and each frame anchored to the newest keyframe of its segment at the time it was posed
-  (``anchor ∘ relative``);
+  (``anchor ∘ relative``) and to the segment's next keyframe (through the two keyframes' poses
+  when that one arrived), the two estimates blended by the frame's share of the time between them;
+  a keyframe's own frame is the keyframe;
 * **loop-closed**: the same frames anchored to the backend's current Sim(3) keyframe estimates.
+
+Why both anchors: a keyframe step changes after the frames before it were tracked (local BA,
+settling, loop corrections); anchored to the older keyframe alone, the frames carried none of that
+and the trajectory jumped at every keyframe. On the 9 synthetic benchmark scenes the loop-closed
+frames were 1.6-3x worse than the keyframes (loop 0: 0.019 vs 0.006 m); with both anchors and the
+keyframe's frame on the keyframe, geometric-mean ATE after loop closing went 0.026 -> 0.019 m.
 
 With no accepted loop the two coincide, so "the trajectory is unchanged" is a measurable claim.
 
@@ -43,6 +51,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import gtsam
 import networkx as nx
 import numpy as np
 
@@ -156,6 +165,26 @@ class _PosedFrame:
     anchor: int
     #: The frame's camera-to-world pose in its anchor keyframe's camera frame.
     relative: np.ndarray
+    #: The segment's next keyframe, the frame's pose in its camera frame (through the anchor's
+    #: pose when that keyframe arrived) and the frame's share of the time between the two.
+    next_anchor: int | None = None
+    next_relative: np.ndarray | None = None
+    next_weight: float = 0.0
+
+    def pose(self, anchors: Mapping[int, np.ndarray]) -> np.ndarray:
+        """Camera-to-world SE(3) pose given keyframe poses: the anchors' two estimates of the
+        frame blended by time (rotation slerp, translation linear), so that what a keyframe step
+        gains after the frames were tracked (local BA, loop corrections) reaches the frames
+        between the two keyframes smoothly instead of as a jump at the next keyframe."""
+        pose = as_4x4(anchors[self.anchor] @ self.relative)
+        if self.next_anchor is None or self.next_relative is None:
+            return pose
+        other = as_4x4(anchors[self.next_anchor] @ self.next_relative)
+        w = self.next_weight
+        blended = np.eye(4)
+        blended[:3, :3] = gtsam.Rot3(pose[:3, :3]).slerp(w, gtsam.Rot3(other[:3, :3])).matrix()
+        blended[:3, 3] = (1.0 - w) * pose[:3, 3] + w * other[:3, 3]
+        return blended
 
 
 @dataclass
@@ -215,6 +244,8 @@ class LoopClosing:
         self._keyframes: dict[int, Keyframe] = {}
         self._odometry_pose: dict[int, np.ndarray] = {}
         self._frames: dict[int, _PosedFrame] = {}
+        #: Per segment, the frames posed since its newest keyframe (they wait for the next one).
+        self._between: dict[int, list[int]] = {}
         self._latest_keyframe: dict[int, int] = {}
         self._segment_frame: dict[int, np.ndarray] = {}
         self._paths: dict[int, str | None] = {}
@@ -275,11 +306,31 @@ class LoopClosing:
             anchor = self._newest_received.get(result.segment)
             if anchor is None:  # no keyframe in this segment yet: nothing to anchor to
                 return records
-            relative = np.linalg.inv(anchor.pose) @ result.pose
+            # A keyframe's own frame is the keyframe: the frontend's tracking estimate of it is
+            # older than the keyframe's bundle-adjusted pose (2-3 cm apart on the synthetic loops).
+            own = keyframe is not None and keyframe.id == anchor.id
+            relative = np.eye(4) if own else np.linalg.inv(anchor.pose) @ result.pose
             self._frames[result.frame_index] = _PosedFrame(
                 result.frame_index, result.timestamp, anchor.id, relative
             )
+            if not own:
+                self._between.setdefault(result.segment, []).append(result.frame_index)
         return records
+
+    def _link_frames(self, keyframe: Keyframe) -> None:
+        """Give the frames posed since the segment's previous keyframe their second anchor."""
+        previous = self._newest_received.get(keyframe.segment)
+        waiting = self._between.pop(keyframe.segment, [])
+        if previous is None:
+            return
+        through = np.linalg.inv(keyframe.pose) @ previous.pose
+        span = keyframe.timestamp - previous.timestamp
+        for index in waiting:
+            posed = self._frames[index]
+            posed.next_anchor = keyframe.id
+            posed.next_relative = through @ posed.relative
+            share = (posed.timestamp - previous.timestamp) / span if span > 0 else 1.0
+            posed.next_weight = float(np.clip(share, 0.0, 1.0))
 
     def _received(self, keyframe_id: int) -> bool:
         return keyframe_id in self._keyframes or any(k.id == keyframe_id for k in self._unsettled)
@@ -291,6 +342,7 @@ class LoopClosing:
         while self._unsettled and self._unsettled[0].segment != keyframe.segment:
             records += self._add_keyframe(self._unsettled.pop(0))
         self._unsettled.append(keyframe)
+        self._link_frames(keyframe)
         self._newest_received[keyframe.segment] = keyframe
         while len(self._unsettled) > self.settle_keyframes:
             records += self._add_keyframe(self._unsettled.pop(0))
@@ -599,5 +651,5 @@ class LoopClosing:
         poses = []
         for index in sorted(self._frames):
             posed = self._frames[index]
-            poses.append((index, posed.timestamp, as_4x4(anchors[posed.anchor] @ posed.relative)))
+            poses.append((index, posed.timestamp, posed.pose(anchors)))
         return poses

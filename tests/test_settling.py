@@ -87,8 +87,10 @@ def test_settled_keyframes_give_the_adjusted_odometry() -> None:
     positions = odometry_positions(closing)
     np.testing.assert_allclose(positions[::2, 0], np.arange(KEYFRAMES), atol=1e-9)
     np.testing.assert_allclose(positions[::2, 1:], 0.0, atol=1e-9)
-    # Each plain frame keeps its place relative to its keyframe: half a metre ahead of it.
-    np.testing.assert_allclose(positions[1::2] - positions[::2], [[0.5, 0.0, 0.0]] * KEYFRAMES, atol=1e-9)
+    # The frame after the last keyframe keeps its place relative to it: half a metre ahead. The
+    # others are blended with their next keyframe (next test), so they lie between the two.
+    np.testing.assert_allclose(positions[-1] - positions[-2], [0.5, 0.0, 0.0], atol=1e-9)
+    assert np.all((positions[1:-1:2, 0] > positions[0:-2:2, 0]) & (positions[1:-1:2, 0] < positions[2::2, 0]))
     # The loop detector saw every keyframe once, in order, with its adjusted pose.
     assert [kf_id for kf_id, _ in detector.seen] == list(range(KEYFRAMES))
     for kf_id, pose in detector.seen:
@@ -100,6 +102,24 @@ def test_steps_read_at_arrival_keep_the_arrival_errors() -> None:
     walk(closing)
     sideways = odometry_positions(closing)[::2, 1]
     np.testing.assert_allclose(sideways, 0.3 * (-1.0) ** np.arange(KEYFRAMES), atol=1e-9)
+
+
+def test_frames_between_keyframes_share_what_the_step_gains_after_they_were_tracked() -> None:
+    """Keyframes at x = 0 and 1 with frames at 0.25, 0.5, 0.75 tracked between them; keyframe 1
+    then settles at x = 1.2. A frame at time share w follows keyframe 0 by 1 - w and keyframe 1 by
+    w, so it moves 0.2 w: no jump of 0.2 m between the last frame and keyframe 1."""
+    closing = LoopClosing(GtsamPoseGraph(BackendConfig()), config=LoopClosingConfig(settle_keyframes=1))
+    first = Keyframe(0, 0, 0.0, gt_pose(0.0), odometry_covariance=COVARIANCE)
+    closing.add(TrackResult(0, 0.0, "tracking", first.pose, 0, first))
+    for index in (1, 2, 3):
+        closing.add(TrackResult(index, index / 4, "tracking", gt_pose(index / 4), 0))
+    second = Keyframe(1, 4, 1.0, gt_pose(1.0), odometry_covariance=COVARIANCE)
+    closing.add(TrackResult(4, 1.0, "tracking", second.pose, 0, second))
+    second.pose = gt_pose(1.2)  # its bundle adjustment, after the frames were tracked
+    closing.finish()
+    positions = odometry_positions(closing)
+    np.testing.assert_allclose(positions[:, 0], [0.0, 0.3, 0.6, 0.9, 1.2], atol=1e-9)
+    np.testing.assert_allclose(positions[:, 1:], 0.0, atol=1e-9)
 
 
 def test_unsettled_keyframes_must_be_finished_before_reading_poses() -> None:
