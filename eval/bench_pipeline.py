@@ -14,6 +14,11 @@ closing, loops proposed / verified / accepted / false (constraints off the GT re
 between views of the same wall 1-2 m apart land there), segments and pipeline fps. The frontend
 continues from every loop-corrected map, so the full run's own odometry already profits from the
 loops; "after / masked no loops" is what loop closing buys (the runs differ only in loop closing).
+ATE "no loops", "masked" and "after" are over every posed frame (``ate_rmse_after_all``): when the
+frontend lost tracking, the segments of a run without loops are joined by the loose identity link
+(placed where the last pose was) and loop closing is what places them, so a per-segment ATE would
+hide what it buys. "before (segment)" and "after/before" are the run's own ``ate_rmse_before`` /
+``ate_rmse_after``, over the segment with most frames (equal to the others with one segment).
 Targets checked at the end: ``after <= 0.5 x masked no loops`` on every revisiting scene, no false
 loop anywhere, no loop on the control, >= 20 fps.
 
@@ -42,8 +47,8 @@ from slam_backend.pipeline import LoopClosing
 
 CONTROL = "none"
 KEYS = (
-    "ate_rmse_before", "ate_rmse_after", "loops_proposed", "loops_verified", "loops_accepted",
-    "false_loops_accepted", "loops_outside_gt_band", "fps", "frames_tracked", "segments",
+    "ate_rmse_before", "ate_rmse_after", "ate_rmse_after_all", "loops_proposed", "loops_verified",
+    "loops_accepted", "false_loops_accepted", "loops_outside_gt_band", "fps", "frames_tracked", "segments",
 )  # fmt: skip
 
 
@@ -88,9 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The frontend continues from each loop-corrected map, so the same run's odometry chain
         # already benefits from the loops: the honest baseline is a run without loop closing.
         baseline = run_scene(folder, work / "runs" / f"{name}_no_loops", "plain")
-        rows[name]["ate_rmse_no_loops"] = baseline["ate_rmse_before"]
+        rows[name]["ate_rmse_no_loops"] = baseline["ate_rmse_after_all"]
         masked = run_scene(folder, work / "runs" / f"{name}_masked_no_loops", "masked")
-        rows[name]["ate_rmse_masked_no_loops"] = masked["ate_rmse_before"]
+        rows[name]["ate_rmse_masked_no_loops"] = masked["ate_rmse_after_all"]
         print(name, {k: rows[name][k] for k in KEYS}, flush=True)
     print_table(rows)
     failures = check_targets(rows)
@@ -103,19 +108,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def print_table(rows: dict[str, dict[str, Any]]) -> None:
     print(
-        "\n| scene | ATE no loops | ATE no loops, masked | ATE before | ATE after | after/no loops | "
-        "after/masked no loops | after/before | proposed | verified | accepted | false | outside GT band | "
-        "segments | fps |"
+        "\n| scene | ATE no loops | ATE no loops, masked | ATE after | after/no loops | "
+        "after/masked no loops | ATE before (segment) | after/before (segment) | proposed | verified | "
+        "accepted | false | outside GT band | segments | fps |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
-        none, before, after = r["ate_rmse_no_loops"], r["ate_rmse_before"], r["ate_rmse_after"]
-        masked = r["ate_rmse_masked_no_loops"]
+        none, masked, after = r["ate_rmse_no_loops"], r["ate_rmse_masked_no_loops"], r["ate_rmse_after_all"]
+        before, after_segment = r["ate_rmse_before"], r["ate_rmse_after"]
         print(
-            f"| {name} | {_f(none)} | {_f(masked)} | {_f(before)} | {_f(after)} | {_ratio(after, none)} | "
-            f"{_ratio(after, masked)} | {_ratio(after, before)} | {r['loops_proposed']} | "
-            f"{r['loops_verified']} | {r['loops_accepted']} | {r['false_loops_accepted']} | "
-            f"{r['loops_outside_gt_band']} | {r['segments']} | {r['fps']:.1f} |"
+            f"| {name} | {_f(none)} | {_f(masked)} | {_f(after)} | {_ratio(after, none)} | "
+            f"{_ratio(after, masked)} | {_f(before)} | {_ratio(after_segment, before)} | "
+            f"{r['loops_proposed']} | {r['loops_verified']} | {r['loops_accepted']} | "
+            f"{r['false_loops_accepted']} | {r['loops_outside_gt_band']} | {r['segments']} | {r['fps']:.1f} |"
         )
 
 
@@ -137,9 +142,9 @@ def check_targets(rows: dict[str, dict[str, Any]]) -> list[str]:
         if name.startswith(CONTROL):
             if r["loops_accepted"]:
                 failures.append(f"{name}: {r['loops_accepted']} loops accepted on the control")
-        elif r["ate_rmse_after"] is None or r["ate_rmse_after"] > 0.5 * r["ate_rmse_masked_no_loops"]:
+        elif r["ate_rmse_after_all"] is None or r["ate_rmse_after_all"] > 0.5 * r["ate_rmse_masked_no_loops"]:
             failures.append(
-                f"{name}: ATE after {r['ate_rmse_after']} > 0.5 x masked no-loops "
+                f"{name}: ATE after {r['ate_rmse_after_all']} > 0.5 x masked no-loops "
                 f"{r['ate_rmse_masked_no_loops']}"
             )
     return failures
