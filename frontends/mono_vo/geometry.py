@@ -71,10 +71,6 @@ def from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return T
 
 
-def to_rvec(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return cv2.Rodrigues(T[:3, :3])[0].reshape(3), T[:3, 3].copy()
-
-
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return linear_map(T[:3, :3], points) + T[:3, 3]
 
