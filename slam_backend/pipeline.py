@@ -167,9 +167,7 @@ class _PosedFrame:
     relative: np.ndarray
     #: The segment's next keyframe, the frame's pose in its camera frame (through the anchor's
     #: pose when that keyframe arrived) and the frame's share of the time between the two.
-    next_anchor: int | None = None
-    next_relative: np.ndarray | None = None
-    next_weight: float = 0.0
+    next_anchor: tuple[int, np.ndarray, float] | None = None
 
     def pose(self, anchors: Mapping[int, np.ndarray]) -> np.ndarray:
         """Camera-to-world SE(3) pose given keyframe poses: the anchors' two estimates of the
@@ -177,10 +175,10 @@ class _PosedFrame:
         gains after the frames were tracked (local BA, loop corrections) reaches the frames
         between the two keyframes smoothly instead of as a jump at the next keyframe."""
         pose = as_4x4(anchors[self.anchor] @ self.relative)
-        if self.next_anchor is None or self.next_relative is None:
+        if self.next_anchor is None:
             return pose
-        other = as_4x4(anchors[self.next_anchor] @ self.next_relative)
-        w = self.next_weight
+        next_id, next_relative, w = self.next_anchor
+        other = as_4x4(anchors[next_id] @ next_relative)
         blended = np.eye(4)
         blended[:3, :3] = gtsam.Rot3(pose[:3, :3]).slerp(w, gtsam.Rot3(other[:3, :3])).matrix()
         blended[:3, 3] = (1.0 - w) * pose[:3, 3] + w * other[:3, 3]
@@ -327,10 +325,8 @@ class LoopClosing:
         span = keyframe.timestamp - previous.timestamp
         for index in waiting:
             posed = self._frames[index]
-            posed.next_anchor = keyframe.id
-            posed.next_relative = through @ posed.relative
             share = (posed.timestamp - previous.timestamp) / span if span > 0 else 1.0
-            posed.next_weight = float(np.clip(share, 0.0, 1.0))
+            posed.next_anchor = (keyframe.id, through @ posed.relative, float(np.clip(share, 0.0, 1.0)))
 
     def _received(self, keyframe_id: int) -> bool:
         return keyframe_id in self._keyframes or any(k.id == keyframe_id for k in self._unsettled)
