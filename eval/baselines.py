@@ -34,7 +34,7 @@ from sklearn.svm import SVC
 from sklearn.tree import DecisionTreeClassifier
 
 from frontends.errors import ConfigError
-from frontends.synth import SynthConfig, write_scene
+from frontends.synth import SynthConfig, cached_scene
 from frontends.synth.world import TrajectoryKind
 from frontends.types import Keyframe
 from lcd.base import LoopCandidate, LoopDetector
@@ -184,10 +184,8 @@ def scaled_synth_config(
 
 
 def render_scene(config: SynthConfig, folder: Path) -> Path:
-    """Render ``config`` into ``folder`` unless a complete render is already there."""
-    if not (folder / "gt_loop_pairs.txt").is_file():
-        write_scene(config, folder, progress=False)
-    return folder
+    """Render ``config`` into ``folder`` unless a render of the same config is already there."""
+    return cached_scene(config, folder)
 
 
 def training_table(split: TrainSplit, scenes_dir: Path, seed: int) -> TrainingTable:

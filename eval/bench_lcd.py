@@ -31,7 +31,7 @@ import numpy as np
 from eval.lcd_eval import figures_of, run_lcd
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
-from frontends.synth import SynthConfig, write_scene
+from frontends.synth import SynthConfig, cached_scene
 from frontends.synth.world import TrajectoryKind
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector
 from lcd.features import OrbConfig
@@ -61,10 +61,8 @@ def synthetic_datasets(scenes: Path, tolerance: int, miss_rate: float) -> list[B
     """Render the synthetic scenes into ``scenes`` once (reused while their config is unchanged)."""
     out = []
     for trajectory, seed in SYNTHETIC_SCENES:
-        folder = scenes / f"{trajectory}_{seed}_{SYNTHETIC_FRAMES}"
-        if not (folder / "gt_loop_pairs.txt").is_file():
-            config = SynthConfig(seed=seed, trajectory=trajectory, frames=SYNTHETIC_FRAMES)
-            write_scene(config, folder, progress=False)
+        config = SynthConfig(seed=seed, trajectory=trajectory, frames=SYNTHETIC_FRAMES)
+        folder = cached_scene(config, scenes / f"{trajectory}_{seed}_{SYNTHETIC_FRAMES}")
         out.append(
             BenchDataset(f"{trajectory} {seed}", folder, "oracle", (f"miss_rate={miss_rate}",), tolerance)
         )

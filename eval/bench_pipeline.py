@@ -42,7 +42,7 @@ from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
 from frontends.synth.world import SynthConfig
-from frontends.synth.writer import write_scene
+from frontends.synth.writer import cached_scene
 from slam_backend.pipeline import LoopClosing
 
 CONTROL = "none"
@@ -53,11 +53,8 @@ KEYS = (
 
 
 def scene(work: Path, trajectory: str, seed: int, frames: int) -> Path:
-    folder = work / f"{trajectory}_{seed}_{frames}"
-    if not (folder / "groundtruth.txt").is_file():
-        config = SynthConfig(trajectory=trajectory, seed=seed, frames=frames)  # type: ignore[arg-type]
-        write_scene(config, folder, progress=False)
-    return folder
+    config = SynthConfig(trajectory=trajectory, seed=seed, frames=frames)  # type: ignore[arg-type]
+    return cached_scene(config, work / f"{trajectory}_{seed}_{frames}")
 
 
 def run_scene(folder: Path, out: Path, mode: str = "full") -> dict[str, Any]:

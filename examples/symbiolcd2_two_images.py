@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from frontends.gt_loops import label_loop_pairs
+from frontends.gt_loops import LoopLabelConfig, label_loop_pairs
 from frontends.synth import SceneRenderer, SynthConfig
 from frontends.types import DetectedObject, Keyframe
 from lcd import symbiolcd2
@@ -34,6 +34,9 @@ from lcd.features import extract_orb
 SCENE = SynthConfig(seed=1, trajectory="loop", frames=600)
 QUERY_FRAME = 475
 SECONDS_APART = 60.0  # assumed time between two images given on the command line
+#: Revisits by camera pose (0.6 m, 30 deg): enough to pick a reference without rendering every
+#: frame's depth, as ``symbio synth``'s covisibility labels do.
+REVISIT = LoopLabelConfig(max_distance=0.6, max_angle_deg=30.0, min_time_gap=3.0, leave_factor=2.0)
 
 #: One image as the detector needs it: (BGR image, objects, timestamp in s, camera-to-world pose).
 View = tuple[np.ndarray, tuple[DetectedObject, ...], float, np.ndarray]
@@ -43,7 +46,7 @@ def synthetic_views() -> list[View]:
     """The nearest GT revisited frame of the first lap, then the query frame, with GT objects."""
     scene = SceneRenderer(SCENE)
     poses, times = scene.path.poses, scene.path.timestamps
-    pairs = label_loop_pairs(poses, times, SCENE.loop_labels)
+    pairs = label_loop_pairs(poses, times, REVISIT)
     references = pairs[pairs[:, 0] == QUERY_FRAME, 1]
     if references.size == 0:
         raise SystemExit(f"frame {QUERY_FRAME} revisits nothing in this scene; pick another")

@@ -15,9 +15,10 @@ import yaml
 
 from frontends.config import load_config
 from frontends.errors import ConfigError
-from frontends.gt_loops import label_loop_pairs, read_loop_pairs
+from frontends.gt_loops import read_loop_pairs
 from frontends.synth import SceneRenderer, SynthConfig, render_frames, write_scene
 from frontends.synth import cli as synth_cli
+from frontends.synth.covisibility import label_covisible_pairs, overlap_matrix
 from frontends.synth.trajectories import camera_path
 from frontends.trajectory_io import read_tum
 
@@ -86,7 +87,7 @@ def test_tum_layout_parses(scene_dir: Path) -> None:
     pairs = read_loop_pairs(scene_dir / "gt_loop_pairs.txt", 40)
     assert ((pairs[:, 1] < pairs[:, 0]) & (pairs[:, 1] >= 0)).all()
     scene = json.loads((scene_dir / "scene.json").read_text())
-    assert scene["loop_labels"]["max_distance"] == SynthConfig().loop_labels.max_distance
+    assert scene["loop_labels"]["min_overlap"] == SynthConfig().loop_labels.min_overlap
     assert (scene_dir.parent / "sheet.png").is_file()
 
 
@@ -112,10 +113,19 @@ def test_movable_objects_move_and_are_flagged(full_scene: SceneRenderer) -> None
     ("kind", "has_loops"), [("loop", True), ("figure8", True), ("out-and-back", True), ("none", False)]
 )
 def test_ground_truth_loops_by_trajectory(kind: str, has_loops: bool) -> None:
-    config = SynthConfig(trajectory=kind, frames=300)  # type: ignore[arg-type]
-    path = camera_path(config)
-    pairs = label_loop_pairs(path.poses, path.timestamps, config.loop_labels)
+    config = small_config(trajectory=kind, frames=300)
+    scene = SceneRenderer(config)
+    grids = []
+    for index in range(config.frames):
+        scene.frame(index)
+        grids.append(scene.depth_samples(config.loop_labels.grid_step))
+    overlap = overlap_matrix(np.stack(grids), scene.path.poses, config.intrinsics, config.loop_labels)
+    pairs = label_covisible_pairs(overlap, scene.path.timestamps, config.loop_labels)
     assert (len(pairs) > 0) == has_loops
+    if has_loops:
+        # Revisits come from the second pass, not from neighbouring frames of one pass.
+        gaps = scene.path.timestamps[pairs[:, 0]] - scene.path.timestamps[pairs[:, 1]]
+        assert gaps.min() >= config.loop_labels.min_time_gap
 
 
 @pytest.mark.parametrize("kind", ["loop", "figure8", "out-and-back", "none"])

@@ -11,6 +11,6 @@ boxes and ground-truth loop pairs. All randomness comes from numpy Generators se
 
 from frontends.synth.render import GtObject, SceneRenderer, render_frames
 from frontends.synth.world import SynthConfig
-from frontends.synth.writer import write_scene
+from frontends.synth.writer import cached_scene, write_scene
 
-__all__ = ["GtObject", "SceneRenderer", "SynthConfig", "render_frames", "write_scene"]
+__all__ = ["GtObject", "SceneRenderer", "SynthConfig", "cached_scene", "render_frames", "write_scene"]

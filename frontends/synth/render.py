@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from frontends.synth.covisibility import depth_grid
 from frontends.synth.trajectories import CameraPath, camera_path
 from frontends.synth.world import Surface, SynthConfig, World, WorldObject, build_world
 
@@ -263,6 +264,10 @@ class SceneRenderer:
         return RenderedFrame(
             index, t, pose, image, raster.instances.copy(), self._ground_truth(raster, objects)
         )
+
+    def depth_samples(self, step: int) -> np.ndarray:
+        """The last rendered frame's inverse depth on a ``step``-pixel grid (for covisibility)."""
+        return depth_grid(self.rasteriser.inverse_depth, step)
 
     def _sensor(self, image: np.ndarray, t: float, index: int) -> np.ndarray:
         config = self.config

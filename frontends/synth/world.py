@@ -18,9 +18,9 @@ look identical: the perceptual aliasing a semantic loop detector must cope with.
 ("person") walk back and forth in lanes between the wall objects and the camera path; the
 detector is expected to drop them.
 
-Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): cameras
-within 0.6 m and 30 deg, at least 3 s apart, after the camera went 1.2 m (``leave_factor`` 2) away.
-The closest revisiting pose is typically 0.1-0.2 m and 10-24 deg off the first pass, well inside.
+Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): frames at
+least 3 s apart whose views share at least half of their surface points (rendered depth), after the
+camera looked away (``frontends.synth.covisibility``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from frontends.errors import ConfigError
-from frontends.gt_loops import LoopLabelConfig
+from frontends.synth.covisibility import CovisibilityLabelConfig
 from frontends.types import CameraIntrinsics
 
 TrajectoryKind = Literal["loop", "figure8", "out-and-back", "none"]
@@ -46,11 +46,6 @@ TRAJECTORY_KINDS: tuple[TrajectoryKind, ...] = ("loop", "figure8", "out-and-back
 WALL_CLEARANCE = 2.2
 #: Distance of the person lanes from the long walls (m).
 PERSON_LANE = 1.35
-
-
-def _room_loop_labels() -> LoopLabelConfig:
-    # Room scale (see the module docstring); the library defaults suit building-sized trajectories.
-    return LoopLabelConfig(max_distance=0.6, max_angle_deg=30.0, min_time_gap=3.0, leave_factor=2.0)
 
 
 @dataclass(frozen=True)
@@ -93,7 +88,7 @@ class SynthConfig:
     min_visible_pixels: int = 20
     #: Near clipping plane (m).
     near: float = 0.05
-    loop_labels: LoopLabelConfig = field(default_factory=_room_loop_labels)
+    loop_labels: CovisibilityLabelConfig = field(default_factory=CovisibilityLabelConfig)
 
     def __post_init__(self) -> None:
         sensor = min(self.noise_sigma, self.blur_sigma, self.exposure_amplitude)

@@ -9,7 +9,8 @@ Files (all text with fixed formatting, so the same config gives byte-identical f
 * ``intrinsics.yaml``: ``fx fy cx cy width height distortion``.
 * ``gt_objects.jsonl``: per frame, the objects with at least ``min_visible_pixels`` visible pixels.
 * ``scene.json``: the config, the path figures, the loop-label config and every world object.
-* ``gt_loop_pairs.txt``: ``query ref`` frame pairs from ``label_loop_pairs`` with ``config.loop_labels``.
+* ``gt_loop_pairs.txt``: ``query ref`` frame pairs whose rendered views overlap
+  (``frontends.synth.covisibility`` with ``config.loop_labels``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ from tqdm import tqdm
 
 from frontends.config import config_to_dict
 from frontends.errors import ConfigError, InputFileError
-from frontends.gt_loops import label_loop_pairs, write_loop_pairs
+from frontends.gt_loops import write_loop_pairs
+from frontends.synth.covisibility import label_covisible_pairs, overlap_matrix
 from frontends.synth.render import GtObject, RenderedFrame, SceneRenderer
 from frontends.synth.world import SynthConfig, WorldObject
 from frontends.trajectory_io import write_trajectory
@@ -57,6 +59,7 @@ def write_scene(
     sheet_frames = set(np.linspace(0, config.frames - 1, CONTACT_SHEET_FRAMES).round().astype(int).tolist())
     thumbnails: list[np.ndarray] = []
     object_lines: list[str] = []
+    depth_grids: list[np.ndarray] = []
     render_seconds = 0.0
     pending: deque[tuple[Path, Future[bool]]] = deque()
     loop_start = time.perf_counter()
@@ -67,6 +70,7 @@ def write_scene(
         for index in range(config.frames):
             tick = time.perf_counter()
             frame = scene.frame(index)
+            depth_grids.append(scene.depth_samples(config.loop_labels.grid_step))
             render_seconds += time.perf_counter() - tick
             path = out / "rgb" / names[index]
             pending.append((path, pool.submit(cv2.imwrite, str(path), frame.image, PNG_PARAMS)))
@@ -92,7 +96,10 @@ def write_scene(
     intrinsics = config.intrinsics.as_dict()
     (out / "intrinsics.yaml").write_text(yaml.safe_dump(intrinsics, sort_keys=False), encoding="utf-8")
     (out / "gt_objects.jsonl").write_text("".join(line + "\n" for line in object_lines), encoding="utf-8")
-    pairs = label_loop_pairs(scene.path.poses, scene.path.timestamps, config.loop_labels)
+    label_start = time.perf_counter()
+    overlap = overlap_matrix(np.stack(depth_grids), scene.path.poses, config.intrinsics, config.loop_labels)
+    pairs = label_covisible_pairs(overlap, scene.path.timestamps, config.loop_labels)
+    label_seconds = time.perf_counter() - label_start
     write_loop_pairs(out / "gt_loop_pairs.txt", pairs)
     path_figures = {
         "scale": round(scene.path.scale, 4),
@@ -123,8 +130,22 @@ def write_scene(
         "render_fps": config.frames / render_seconds,
         "write_fps": config.frames / loop_seconds,
         "setup_seconds": setup_seconds,
+        "label_seconds": label_seconds,
         "seconds": time.perf_counter() - start,
     }
+
+
+def cached_scene(config: SynthConfig, folder: str | Path) -> Path:
+    """``folder`` holding ``config``'s scene: rendered unless a complete render of the same config
+    (its ``scene.json``, written last) is already there, so a changed config or labeller re-renders."""
+    folder = Path(folder)
+    try:
+        current = json.loads((folder / "scene.json").read_text(encoding="utf-8"))["config"]
+    except (OSError, ValueError, KeyError):
+        current = None
+    if current != json.loads(json.dumps(config_to_dict(config))):
+        write_scene(config, folder, progress=False)
+    return folder
 
 
 def _prepare_output(out: Path) -> None:

@@ -1,0 +1,62 @@
+"""Covisibility ground truth of synthetic scenes: overlap from depth, and the labelling rules."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from frontends.synth.covisibility import CovisibilityLabelConfig, label_covisible_pairs, overlap_matrix
+from frontends.types import CameraIntrinsics
+
+CAMERA = CameraIntrinsics(fx=100.0, fy=100.0, cx=63.5, cy=47.5, width=128, height=96)
+CONFIG = CovisibilityLabelConfig(grid_step=8)
+
+
+def facing_wall(x: float, yaw_deg: float = 0.0, distance: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """A camera at (x, 0, 0) looking along +z (turned by ``yaw_deg`` about y) at the wall z = distance,
+    and the inverse-depth grid it renders (0 where it sees no wall)."""
+    yaw = np.radians(yaw_deg)
+    rotation = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, [x, 0.0, 0.0]
+    step = CONFIG.grid_step
+    centres = step // 2
+    u, v = np.meshgrid(
+        np.arange(CAMERA.width // step) * step + centres, np.arange(CAMERA.height // step) * step + centres
+    )
+    rays = np.stack([(u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, np.ones(u.shape)], axis=-1)
+    world_rays = rays @ rotation.T
+    # Depth along the optical axis of the ray's hit on the plane z = distance.
+    t = np.where(world_rays[..., 2] > 1e-9, distance / np.maximum(world_rays[..., 2], 1e-9), np.inf)
+    inverse = np.where(np.isfinite(t), 1.0 / t, 0.0).astype(np.float32)
+    return pose, inverse
+
+
+def test_overlap_of_identical_shifted_and_opposite_views() -> None:
+    views = [facing_wall(0.0), facing_wall(0.0), facing_wall(1.28), facing_wall(0.0, 180.0), facing_wall(5.0)]
+    poses = np.stack([p for p, _ in views])
+    grids = np.stack([g for _, g in views])
+    overlap = overlap_matrix(grids, poses, CAMERA, CONFIG)
+    assert overlap[0, 1] == overlap[1, 0] == 1.0
+    # The wall seen at 2 m spans 2.56 m; moving 1.28 m sideways keeps half of it in view.
+    assert abs(overlap[0, 2] - 0.5) < 0.08
+    assert overlap[0, 3] == overlap[0, 4] == 0.0
+
+
+def test_labels_need_overlap_time_gap_and_having_left() -> None:
+    n = 6
+    overlap = np.eye(n, dtype=np.float32)
+    overlap[5, 0] = overlap[0, 5] = 0.8  # the camera comes back to frame 0's view
+    overlap[1, 0] = overlap[0, 1] = 0.9  # the next frame of the same pass
+    overlap[4, 2] = overlap[2, 4] = 0.3  # below min_overlap
+    timestamps = np.arange(n) * 2.0
+    pairs = label_covisible_pairs(overlap, timestamps, CovisibilityLabelConfig(min_time_gap=3.0))
+    assert pairs.tolist() == [[5, 0]]
+    # One-sided overlap (a close-up of part of a wide view) is not the same place.
+    overlap[0, 5] = 0.2
+    assert len(label_covisible_pairs(overlap, timestamps, CovisibilityLabelConfig(min_time_gap=3.0))) == 0
+
+
+def test_a_camera_that_never_looks_away_labels_no_loop() -> None:
+    overlap = np.full((5, 5), 0.9, dtype=np.float32)
+    timestamps = np.arange(5) * 10.0
+    assert len(label_covisible_pairs(overlap, timestamps, CovisibilityLabelConfig())) == 0
