@@ -118,9 +118,9 @@ def test_ground_truth_loops_by_trajectory(kind: str, has_loops: bool) -> None:
     grids = []
     for index in range(config.frames):
         scene.frame(index)
-        grids.append(scene.depth_samples(config.loop_labels.grid_step))
+        grids.append(scene.depth_samples(config.loop_labels.depth_step))
     overlap = overlap_matrix(np.stack(grids), scene.path.poses, config.intrinsics, config.loop_labels)
-    pairs = label_covisible_pairs(overlap, scene.path.timestamps, config.loop_labels)
+    pairs = label_covisible_pairs(overlap, scene.path.poses, scene.path.timestamps, config.loop_labels)
     assert (len(pairs) > 0) == has_loops
     if has_loops:
         # Revisits come from the second pass, not from neighbouring frames of one pass.

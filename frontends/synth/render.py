@@ -236,6 +236,7 @@ class SceneRenderer:
         self.static_faces = {
             obj.instance: _object_faces(self.world, obj, 0.0) for obj in self.world.objects if not obj.movable
         }
+        self.movable_instances = np.array([obj.instance for obj in self.world.objects if obj.movable])
         rng = np.random.default_rng([config.seed, 3])
         noise = rng.normal(
             0.0, config.noise_sigma, (NOISE_BANK, config.height + NOISE_PAD, config.width + NOISE_PAD, 3)
@@ -266,8 +267,10 @@ class SceneRenderer:
         )
 
     def depth_samples(self, step: int) -> np.ndarray:
-        """The last rendered frame's inverse depth on a ``step``-pixel grid (for covisibility)."""
-        return depth_grid(self.rasteriser.inverse_depth, step)
+        """The last rendered frame's inverse depth on a ``step``-pixel grid (for covisibility),
+        -1 where a movable object (a walking person) hides the static scene."""
+        raster = self.rasteriser
+        return depth_grid(raster.inverse_depth, step, np.isin(raster.instances, self.movable_instances))
 
     def _sensor(self, image: np.ndarray, t: float, index: int) -> np.ndarray:
         config = self.config

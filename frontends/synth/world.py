@@ -19,8 +19,8 @@ look identical: the perceptual aliasing a semantic loop detector must cope with.
 detector is expected to drop them.
 
 Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): frames at
-least 3 s apart whose views share at least half of their surface points (rendered depth), after the
-camera looked away (``frontends.synth.covisibility``).
+least 3 s apart whose views share at least 30 % of their static surface points (rendered depth),
+after the camera looked away (``frontends.synth.covisibility``).
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ def write_scene(
         for index in range(config.frames):
             tick = time.perf_counter()
             frame = scene.frame(index)
-            depth_grids.append(scene.depth_samples(config.loop_labels.grid_step))
+            depth_grids.append(scene.depth_samples(config.loop_labels.depth_step))
             render_seconds += time.perf_counter() - tick
             path = out / "rgb" / names[index]
             pending.append((path, pool.submit(cv2.imwrite, str(path), frame.image, PNG_PARAMS)))
@@ -98,7 +98,7 @@ def write_scene(
     (out / "gt_objects.jsonl").write_text("".join(line + "\n" for line in object_lines), encoding="utf-8")
     label_start = time.perf_counter()
     overlap = overlap_matrix(np.stack(depth_grids), scene.path.poses, config.intrinsics, config.loop_labels)
-    pairs = label_covisible_pairs(overlap, scene.path.timestamps, config.loop_labels)
+    pairs = label_covisible_pairs(overlap, scene.path.poses, scene.path.timestamps, config.loop_labels)
     label_seconds = time.perf_counter() - label_start
     write_loop_pairs(out / "gt_loop_pairs.txt", pairs)
     path_figures = {
