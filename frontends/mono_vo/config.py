@@ -99,11 +99,6 @@ class TrackingSettings:
     min_inliers: int = 40
     #: Keyframes whose map points form the local map projected into each frame.
     local_keyframes: int = 10
-    #: A PnP pose farther than this many predicted steps from the constant-velocity prediction is
-    #: refined with the prediction as a prior (``motion_prior``); a predicted step counts as at
-    #: least ``min_step_depth_ratio`` x the median scene depth (a camera about to stop).
-    motion_jump_factor: float = 3.0
-    min_step_depth_ratio: float = 0.002
 
 
 @dataclass(frozen=True)

@@ -187,9 +187,7 @@ class MonoVo:
         assert self.T_cw_last is not None
         steps = max(1, frame.index - self.last_frame_index)
         predicted = _fraction_of_motion(self.velocity, steps) @ self.T_cw_last
-        estimate = self.tracker.track(
-            self.segment_map, features, tree, predicted, frame.index, self.T_cw_last
-        )
+        estimate = self.tracker.track(self.segment_map, features, tree, predicted, frame.index)
         if estimate is None:
             return None
         self.velocity = _fraction_of_motion(estimate.T_cw @ invert(self.T_cw_last), 1.0 / steps)

@@ -20,9 +20,6 @@ Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
    The pose stays PnP's. Refining it on these matches measured no better (15 synthetic scenes,
    odometry ATE geometric mean: 0.040 m as is, 0.043 with OpenCV's Levenberg-Marquardt, 0.065 with
    pycolmap's Cauchy-robust ``refine_absolute_pose``, which collapsed three maps).
-5. A pose farther than ``motion_jump_factor`` predicted steps from the prediction is refined with
-   the prediction as a prior (``motion_prior``: against a far map seen in a narrow strip, PnP
-   slides along the translation/rotation ambiguity) and searched again from there.
 
 Relocalisation matches the frame's descriptors against the map points of recent keyframes (newest
 first), solves PnP RANSAC, and accepts a pose only if tracking the local map from it then finds
@@ -48,7 +45,6 @@ from frontends.mono_vo.geometry import (
     usac_params,
 )
 from frontends.mono_vo.map import SegmentMap
-from frontends.mono_vo.motion_prior import refine_with_motion_prior
 
 
 @dataclass(frozen=True)
@@ -88,10 +84,7 @@ class Tracker:
         tree: cKDTree,
         T_predicted: np.ndarray,
         frame_index: int,
-        T_cw_last: np.ndarray | None = None,
     ) -> PoseEstimate | None:
-        """``T_cw_last``: the previous frame's pose, from which ``T_predicted`` extrapolates; given,
-        a PnP pose that jumps far from the prediction is refined with the motion prior."""
         s = self.settings
         local_ids = segment_map.local_point_ids(s.local_keyframes)
         pairs = self._match(segment_map, local_ids, features, tree, T_predicted, s.search_radius)
@@ -108,46 +101,7 @@ class Tracker:
         estimate = self.track_local_map(segment_map, local_ids, features, tree, T_cw)
         if estimate is None or len(estimate.keypoint_idx) < self.min_inliers:
             return None
-        if T_cw_last is not None and self._jumped(estimate, T_predicted, T_cw_last, segment_map):
-            T_cw = self._with_motion_prior(estimate, T_predicted, T_cw_last, segment_map, features)
-            refined = self.track_local_map(segment_map, local_ids, features, tree, T_cw)
-            if refined is not None and len(refined.keypoint_idx) >= self.min_inliers:
-                return refined
         return estimate
-
-    def _predicted_step(self, T_predicted: np.ndarray, T_cw_last: np.ndarray, depth: float) -> float:
-        """Length of the predicted camera step, at least ``min_step_depth_ratio`` x scene depth."""
-        step = float(np.linalg.norm(invert(T_predicted)[:3, 3] - invert(T_cw_last)[:3, 3]))
-        return max(step, self.settings.min_step_depth_ratio * depth)
-
-    def _median_depth(self, segment_map: SegmentMap, estimate: PoseEstimate) -> float:
-        _, depth = project(self.K, estimate.T_cw, segment_map.points.positions[estimate.point_ids])
-        return float(np.median(depth))
-
-    def _jumped(
-        self, estimate: PoseEstimate, T_predicted: np.ndarray, T_cw_last: np.ndarray, segment_map: SegmentMap
-    ) -> bool:
-        """The pose is farther from the prediction than ``motion_jump_factor`` predicted steps."""
-        step = self._predicted_step(T_predicted, T_cw_last, self._median_depth(segment_map, estimate))
-        offset = float(np.linalg.norm(invert(estimate.T_cw)[:3, 3] - invert(T_predicted)[:3, 3]))
-        return offset > self.settings.motion_jump_factor * step
-
-    def _with_motion_prior(
-        self,
-        estimate: PoseEstimate,
-        T_predicted: np.ndarray,
-        T_cw_last: np.ndarray,
-        segment_map: SegmentMap,
-        features: Features,
-    ) -> np.ndarray:
-        step = self._predicted_step(T_predicted, T_cw_last, self._median_depth(segment_map, estimate))
-        turn = T_predicted[:3, :3] @ T_cw_last[:3, :3].T
-        angle = float(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0)))
-        octaves = np.minimum(features.octaves[estimate.keypoint_idx], len(self.octave_sigma) - 1)
-        return refine_with_motion_prior(
-            self.K, estimate.T_cw, T_predicted, segment_map.points.positions[estimate.point_ids],
-            features.points[estimate.keypoint_idx], self.octave_sigma[octaves], step, angle,
-        )  # fmt: skip
 
     def track_local_map(
         self,
