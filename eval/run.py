@@ -510,9 +510,10 @@ def loop_truth(
 
     A loop is false when its constraint contradicts the GT poses (``LoopPoseError.wrong``); without
     GT poses for its frames, when it lies outside the GT loop pairs' band (``tolerance`` frames).
-    The band is a place labeller's (synthetic scenes: cameras within 0.6 m and 30 deg): views of
-    the same wall 1-2 m apart fall outside it and still give right constraints (measured: within
-    0.4 deg and 1 deg of the GT), so ``loops_outside_gt_band`` counts those separately. Recall
+    The band is a place labeller's (synthetic scenes: covisible views within 1 m): views of the
+    same wall farther apart fall outside it and still give right constraints (measured with the
+    earlier 0.6 m band: within 0.4 deg and 1 deg of the GT), so ``loops_outside_gt_band`` counts
+    those separately. Recall
     counts the query keyframes that had a GT loop to an earlier keyframe (within ``tolerance``
     frames) and got an accepted loop inside the band."""
     accepted = [r for r in loops if r.accepted]
