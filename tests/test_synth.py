@@ -16,7 +16,7 @@ import yaml
 from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.gt_loops import read_loop_pairs
-from frontends.synth import SceneRenderer, SynthConfig, render_frames, write_scene
+from frontends.synth import SceneRenderer, SynthConfig, cached_scene, render_frames, write_scene
 from frontends.synth import cli as synth_cli
 from frontends.synth.covisibility import label_covisible_pairs, overlap_matrix
 from frontends.synth.trajectories import camera_path
@@ -217,3 +217,14 @@ def test_cli_writes_a_scene(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert figures["frames"] == 12 and figures["gt_loop_pairs"] == 0 and figures["render_fps"] > 0
     assert "gt_loop_pairs" in capsys.readouterr().out
     assert json.loads((tmp_path / "s" / "scene.json").read_text())["config"]["seed"] == 4
+
+
+def test_cached_scene_is_reused_only_for_the_same_config(tmp_path: Path) -> None:
+    folder = tmp_path / "scene"
+    cached_scene(small_config(frames=4, seed=1), folder)
+    written = (folder / "scene.json").stat().st_mtime_ns
+    cached_scene(small_config(frames=4, seed=1), folder)
+    assert (folder / "scene.json").stat().st_mtime_ns == written
+    # A changed labeller (or any other setting) re-renders: stale GT loops are never reused.
+    cached_scene(small_config(frames=4, seed=1, **{"loop_labels.min_overlap": 0.6}), folder)
+    assert json.loads((folder / "scene.json").read_text())["loop_labels"]["min_overlap"] == 0.6
