@@ -80,3 +80,19 @@ def test_a_passing_person_neither_hides_the_place_nor_counts_as_it() -> None:
     _, nearer = facing_wall(0.0, distance=1.0)
     blocked = overlap_matrix(np.stack([grid, nearer]), np.stack([pose, other_pose]), CAMERA, CONFIG)
     assert blocked[0, 1] == 0.0
+
+
+def test_walking_away_along_a_wall_and_back_is_a_revisit() -> None:
+    # The wall stays in view the whole time (overlap never below 10 %), but the camera went 3 m away.
+    n = 6
+    overlap = np.full((n, n), 0.5, dtype=np.float32)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = [0.0, 1.5, 3.0, 3.0, 1.5, 0.1]
+    timestamps = np.arange(n) * 2.0
+    pairs = label_covisible_pairs(overlap, poses, timestamps, CovisibilityLabelConfig(min_time_gap=3.0))
+    assert [5, 0] in pairs.tolist()
+    # Never farther than 2 m (2 x 1 m): hovering, no revisit.
+    poses[:, 0, 3] = [0.0, 0.5, 1.0, 1.0, 0.5, 0.1]
+    assert (
+        len(label_covisible_pairs(overlap, poses, timestamps, CovisibilityLabelConfig(min_time_gap=3.0))) == 0
+    )

@@ -9,8 +9,8 @@ smaller of the two directions, so a close-up of a detail inside a wide view is n
 
 ``q`` revisits an earlier ``r`` when their mutual overlap is at least ``min_overlap``, the cameras
 are within ``max_distance``, at least ``min_time_gap`` seconds passed, and the camera has been
-away: some frame between them overlaps ``r`` by less than ``leave_overlap`` (a camera hovering
-over one spot never labels its own pass).
+away: some frame between them overlaps ``r`` by less than ``leave_overlap`` or is farther than
+``leave_factor`` x ``max_distance`` from it (a camera hovering over one spot never labels its own pass).
 
 Why not camera distance and angle alone (``frontends.gt_loops``, the labeller for real data): on
 the room scenes (loop seeds 3 and 11, 900 frames) a quarter of the pairs within 0.6 m and 30 deg
@@ -37,8 +37,11 @@ class CovisibilityLabelConfig:
     #: but the second camera is not back at the first one's place. 1 m, ``LoopLabelConfig``'s
     #: indoor default.
     max_distance: float = 1.0
-    #: The camera left ``r`` once a frame overlapped it by less than this.
+    #: The camera left ``r`` once a frame overlapped it by less than this, or moved farther than
+    #: ``leave_factor`` x ``max_distance`` from it: walking along a wall to a turn and back never
+    #: looks away from it (out-and-back: >= 32 % overlap all the way), yet the return is a revisit.
     leave_overlap: float = 0.1
+    leave_factor: float = 2.0
     #: Minimum time between the two frames (s).
     min_time_gap: float = 3.0
     #: Pixel step of the stored inverse-depth grid (where a projected point is looked up: a coarse
@@ -106,8 +109,10 @@ def label_covisible_pairs(
     ``poses`` (N, 4, 4) camera-to-world."""
     mutual = np.minimum(overlap, overlap.T)
     count = len(mutual)
-    # First later frame that overlaps each frame by less than leave_overlap (count if none).
-    away = np.triu(mutual < config.leave_overlap, 1)
+    # First later frame that overlaps each frame by less than leave_overlap or is far from it.
+    centres = poses[:, :3, 3]
+    far = np.linalg.norm(centres[:, None] - centres[None], axis=2) > config.leave_factor * config.max_distance
+    away = np.triu((mutual < config.leave_overlap) | far, 1)
     left = np.where(away.any(axis=1), away.argmax(axis=1), count)
     query, ref = np.nonzero(np.tril(mutual >= config.min_overlap, -1))
     distance = np.linalg.norm(poses[query, :3, 3] - poses[ref, :3, 3], axis=1)

@@ -20,7 +20,7 @@ detector is expected to drop them.
 
 Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): frames at
 least 3 s apart whose views share at least 30 % of their static surface points (rendered depth),
-after the camera looked away (``frontends.synth.covisibility``).
+after the camera looked away or went 2 m away (``frontends.synth.covisibility``).
 """
 
 from __future__ import annotations
