@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from frontends.errors import ConfigError
 from frontends.synth.covisibility import CovisibilityLabelConfig, label_covisible_pairs, overlap_matrix
 from frontends.types import CameraIntrinsics
 
@@ -96,3 +98,10 @@ def test_walking_away_along_a_wall_and_back_is_a_revisit() -> None:
     assert (
         len(label_covisible_pairs(overlap, poses, timestamps, CovisibilityLabelConfig(min_time_gap=3.0))) == 0
     )
+
+
+def test_bad_label_settings_are_refused_by_name() -> None:
+    with pytest.raises(ConfigError, match=r"loop_labels: depth_step must be >= 1"):
+        CovisibilityLabelConfig(depth_step=0)
+    with pytest.raises(ConfigError, match=r"min_overlap must be in \(0, 1\]"):
+        CovisibilityLabelConfig(min_overlap=1.5)

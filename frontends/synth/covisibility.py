@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from frontends.errors import ConfigError
 from frontends.types import CameraIntrinsics
 
 
@@ -51,14 +52,38 @@ class CovisibilityLabelConfig:
     sample_every: int = 4
     depth_tolerance: float = 0.1
 
+    def __post_init__(self) -> None:
+        failed = [
+            f"{name} must be {rule}"
+            for name, ok, rule in (
+                ("min_overlap", 0 < self.min_overlap <= 1, "in (0, 1]"),
+                ("leave_overlap", 0 <= self.leave_overlap < self.min_overlap, "in [0, min_overlap)"),
+                ("max_distance", self.max_distance > 0, "> 0"),
+                ("leave_factor", self.leave_factor > 0, "> 0"),
+                ("min_time_gap", self.min_time_gap >= 0, ">= 0"),
+                ("depth_step", self.depth_step >= 1, ">= 1"),
+                ("sample_every", self.sample_every >= 1, ">= 1"),
+                ("depth_tolerance", self.depth_tolerance > 0, "> 0"),
+            )
+            if not ok
+        ]
+        if failed:
+            raise ConfigError(f"loop_labels: {'; '.join(failed)}")
 
-def depth_grid(inverse_depth: np.ndarray, step: int, transient: np.ndarray | None = None) -> np.ndarray:
+
+def depth_grid(
+    inverse_depth: np.ndarray,
+    step: int,
+    instances: np.ndarray | None = None,
+    transient: np.ndarray | None = None,
+) -> np.ndarray:
     """The inverse depth at the centres of ``step``-pixel cells (0 where nothing was drawn), -1 where
-    ``transient`` (a boolean image) marks something that hides the static scene only for a while."""
+    the instance image shows one of the ``transient`` instances (something that hides the static
+    scene only for a while)."""
     cells = (slice(step // 2, None, step), slice(step // 2, None, step))
     grid = np.array(inverse_depth[cells], dtype=np.float32)
-    if transient is not None:
-        grid[transient[cells]] = -1.0
+    if instances is not None and transient is not None:
+        grid[np.isin(instances[cells], transient)] = -1.0
     return grid
 
 
@@ -76,6 +101,7 @@ def overlap_matrix(
     u, v = u[sampled], v[sampled]
     rays = np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy])
     world_to_camera = np.linalg.inv(poses)
+    frames = np.arange(count)[:, None]
     overlap = np.zeros((count, count), np.float32)
     for r in range(count):
         inverse = grids[r][sampled].ravel()
@@ -94,7 +120,7 @@ def overlap_matrix(
         inside = front & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
         gx = np.clip((x / step).astype(np.int64), 0, columns - 1)
         gy = np.clip((y / step).astype(np.int64), 0, rows - 1)
-        seen = grids[np.arange(count)[:, None], gy, gx]
+        seen = grids[frames, gy, gx]
         depth_error = np.abs(1.0 / np.maximum(seen, 1e-9) - z)
         # Behind a walking person the static scene is taken as seen: the place is the same.
         visible = inside & ((seen < 0) | ((seen > 0) & (depth_error <= config.depth_tolerance * z)))
@@ -109,17 +135,17 @@ def label_covisible_pairs(
     ``poses`` (N, 4, 4) camera-to-world."""
     mutual = np.minimum(overlap, overlap.T)
     count = len(mutual)
-    # First later frame that overlaps each frame by less than leave_overlap or is far from it.
     centres = poses[:, :3, 3]
-    far = np.linalg.norm(centres[:, None] - centres[None], axis=2) > config.leave_factor * config.max_distance
+    distance = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    # First later frame that overlaps each frame by less than leave_overlap or is far from it.
+    far = distance > config.leave_factor * config.max_distance
     away = np.triu((mutual < config.leave_overlap) | far, 1)
     left = np.where(away.any(axis=1), away.argmax(axis=1), count)
     query, ref = np.nonzero(np.tril(mutual >= config.min_overlap, -1))
-    distance = np.linalg.norm(poses[query, :3, 3] - poses[ref, :3, 3], axis=1)
     keep = (
         (timestamps[query] - timestamps[ref] >= config.min_time_gap)
         & (left[ref] < query)
-        & (distance <= config.max_distance)
+        & (distance[query, ref] <= config.max_distance)
     )
     pairs = np.stack([query[keep], ref[keep]], axis=1).astype(np.int64)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]

@@ -270,7 +270,7 @@ class SceneRenderer:
         """The last rendered frame's inverse depth on a ``step``-pixel grid (for covisibility),
         -1 where a movable object (a walking person) hides the static scene."""
         raster = self.rasteriser
-        return depth_grid(raster.inverse_depth, step, np.isin(raster.instances, self.movable_instances))
+        return depth_grid(raster.inverse_depth, step, raster.instances, self.movable_instances)
 
     def _sensor(self, image: np.ndarray, t: float, index: int) -> np.ndarray:
         config = self.config
