@@ -274,6 +274,23 @@ def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
     )
 
 
+def global_ba_figures(closing: LoopClosing) -> dict[str, Any]:
+    """What the global bundle adjustment did (``global_ba`` false: it did not run)."""
+    adjusted = closing.adjusted
+    if adjusted is None:
+        return {"global_ba": False}
+    s = adjusted.stats
+    return {
+        "global_ba": True,
+        "global_ba_keyframes": s.keyframes,
+        "global_ba_points": s.points,
+        "global_ba_loop_observations": s.loop_observations,
+        "global_ba_median_error_px_before": s.median_error_before_px,
+        "global_ba_median_error_px_after": s.median_error_after_px,
+        "frames_reposed": closing.frames_reposed,
+    }
+
+
 def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopClosing:
     """The loop-closing half for ``components``; None or ``--no-loops``: the backend chain only."""
     c = components or Components()
@@ -288,6 +305,7 @@ def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopC
         OBJECT_DETECTORS.load(object_name)(c.of("object_detector")),
         VERIFIERS.load(c.verifier)(dataset.camera, c.of("verifier")),
         config,
+        camera=dataset.camera,
     )
 
 
@@ -489,6 +507,7 @@ def run_figures(
         "loops_proposed": len(loops),
         "loops_verified": sum(r.verified for r in loops),
         "loops_accepted": sum(r.accepted for r in loops),
+        **global_ba_figures(closing),
         "object_detector_failures": counters.object_detector_failures,
         "loop_detector_failures": counters.loop_detector_failures,
         "verifier_failures": counters.verifier_failures,

@@ -25,6 +25,15 @@ TrackingState = Literal["initialising", "tracking", "relocalised", "lost"]
 
 
 @dataclass(frozen=True)
+class PointObservations:
+    """The map points a frame was posed from: pixel keypoints (as detected) and their point ids
+    (unique within the frame's segment, the ids ``Keyframe.point_ids`` uses)."""
+
+    keypoints: np.ndarray
+    point_ids: np.ndarray
+
+
+@dataclass(frozen=True)
 class TrackResult:
     """What a frontend says about one frame."""
 
@@ -39,6 +48,9 @@ class TrackResult:
     #: Results for earlier frames that this call posed after the fact (e.g. the frames seen while
     #: a monocular map initialised); each replaces the result given for its frame before.
     backfilled: tuple[TrackResult, ...] = ()
+    #: What the pose rests on, when the frontend keeps a map (lets the pipeline re-pose the frame
+    #: after a global bundle adjustment moved the map).
+    observations: PointObservations | None = None
 
 
 @runtime_checkable

@@ -141,6 +141,9 @@ class Keyframe:
     #: (N, 3) map point of each keypoint in this keyframe's camera frame, NaN rows where a keypoint
     #: has none (what Sim(3) geometric verification aligns). None when the frontend has no map.
     points3d: np.ndarray | None = None
+    #: (N,) map point id of each keypoint, -1 where none: two keyframes of one segment with the
+    #: same id see the same point (what global bundle adjustment joins). None without a map.
+    point_ids: np.ndarray | None = None
     #: Map segment: a new segment starts after a tracking loss that relocalisation could not
     #: recover; poses of different segments share no frame until a loop reconnects them.
     segment: int = 0

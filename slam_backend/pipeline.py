@@ -55,15 +55,22 @@ import gtsam
 import networkx as nx
 import numpy as np
 
-from frontends.base import TrackResult
+from frontends.base import PointObservations, TrackResult
 from frontends.errors import ConfigError
-from frontends.types import DetectedObject, Frame, Keyframe
+from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from lcd.objects.filtering import MOVABLE_LABELS
+from slam_backend.global_ba import (
+    AdjustedMap,
+    GlobalBundleAdjustmentConfig,
+    LoopCorrespondences,
+    global_bundle_adjustment,
+    repose_frame,
+)
 from slam_backend.lie import as_4x4, pose_group
 from slam_backend.pcm import LoopMeasurement, OdometryChain, PairwiseConsistency
 from slam_backend.posegraph import LoopDecision, PoseGraphBackend
-from slam_backend.verify import Verification, Verifier
+from slam_backend.verify import Verification, Verifier, colmap_camera
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +123,9 @@ class LoopClosingConfig:
     #: Newer keyframes a keyframe waits for before its odometry step is read and it is searched
     #: for loops (see "Settling"); None: the frontend's ``keyframes_in_flux`` (0 if it has none).
     settle_keyframes: int | None = None
+    #: Full bundle adjustment over every keyframe and map point when the stream ends, if a loop was
+    #: accepted (``slam_backend.global_ba``; needs the camera and keyframes with map point ids).
+    global_ba: GlobalBundleAdjustmentConfig = field(default_factory=GlobalBundleAdjustmentConfig)
 
     def __post_init__(self) -> None:
         if self.settle_keyframes is not None and self.settle_keyframes < 0:
@@ -168,6 +178,8 @@ class _PosedFrame:
     #: The segment's next keyframe, the frame's pose in its camera frame (through the anchor's
     #: pose when that keyframe arrived) and the frame's share of the time between the two.
     next_anchor: tuple[int, np.ndarray, float] | None = None
+    #: The map points it was posed from (kept for the global bundle adjustment).
+    observations: PointObservations | None = None
 
     def pose(self, anchors: Mapping[int, np.ndarray]) -> np.ndarray:
         """Camera-to-world SE(3) pose given keyframe poses: the anchors' two estimates of the
@@ -216,6 +228,7 @@ class LoopClosing:
         on_loop: Callable[[LoopRecord], None] | None = None,
         on_correction: Callable[[dict[int, np.ndarray]], None] | None = None,
         on_keyframe: Callable[[Keyframe, Any], None] | None = None,
+        camera: CameraIntrinsics | None = None,
     ) -> None:
         """``detector``/``verifier`` None: odometry only (the pose graph holds just the chain).
 
@@ -223,8 +236,10 @@ class LoopClosing:
         keyframe estimates (camera-to-world Sim(3), by keyframe id) after every event that accepted
         a loop, so the frontend can move its map there and keep tracking in the corrected map;
         ``on_keyframe`` gets each keyframe as the detector saw it (with objects) and the detector's
-        graph of it when the detector exposes one (``last_graph``, SymbioLCD2), e.g. for a viewer."""
+        graph of it when the detector exposes one (``last_graph``, SymbioLCD2), e.g. for a viewer.
+        ``camera``: the keypoints' camera, for the global bundle adjustment (None: none runs)."""
         self.backend = backend
+        self.camera = camera
         self.detector = detector
         self.objects = objects
         self.verifier = verifier
@@ -260,6 +275,12 @@ class LoopClosing:
         self._steps: list[tuple[np.ndarray, np.ndarray]] = []
         self._chain_index: dict[int, int] = {}
         self._pcm = self._bridge_test()
+        #: Keypoint pairs of every verified candidate, by (query, match) keyframe ids.
+        self._correspondences: dict[tuple[int, int], np.ndarray] = {}
+        #: The global bundle adjustment's map (None until ``finish`` ran one), and the frames it
+        #: posed again (camera-to-world SE(3) by frame index).
+        self.adjusted: AdjustedMap | None = None
+        self._reposed: dict[int, np.ndarray] = {}
 
     def _bridge_test(self) -> PairwiseConsistency:
         chain = OdometryChain(pose_group("sim3"))
@@ -289,11 +310,53 @@ class LoopClosing:
         return records
 
     def finish(self) -> list[LoopRecord]:
-        """Settle the keyframes still waiting (the stream ended); returns their loop records."""
+        """Settle the keyframes still waiting (the stream ended), then run the global bundle
+        adjustment if a loop was accepted; returns the loop records of the settled keyframes."""
         records: list[LoopRecord] = []
         while self._unsettled:
             records += self._add_keyframe(self._unsettled.pop(0))
+        self._global_bundle_adjustment()
         return records
+
+    def _global_bundle_adjustment(self) -> None:
+        config = self.config.global_ba
+        accepted = [
+            LoopCorrespondences(r.query, r.match, self._correspondences[(r.query, r.match)])
+            for r in self.loops()
+            if r.accepted and (r.query, r.match) in self._correspondences
+        ]
+        if not config.enabled or self.camera is None or not accepted:
+            return
+        start = time.perf_counter()
+        estimates = self.backend.estimate()
+        self.adjusted = global_bundle_adjustment(
+            list(self._keyframes.values()), estimates, accepted, self.camera, config
+        )
+        self.counters.seconds["global_ba"] += time.perf_counter() - start
+        if self.adjusted is None:
+            return
+        if config.repose_frames:
+            start = time.perf_counter()
+            self._repose_frames(self.adjusted)
+            self.counters.seconds["repose_frames"] += time.perf_counter() - start
+        s = self.adjusted.stats
+        log.info(
+                "global bundle adjustment: %d keyframes, %d points, %d observations (%d from loops), "
+            "median reprojection error %.2f -> %.2f px; %d of %d frames posed again",
+            s.keyframes, s.points, s.observations, s.loop_observations,
+            s.median_error_before_px, s.median_error_after_px, self.frames_reposed, len(self._frames),
+        )  # fmt: skip
+
+    def _repose_frames(self, adjusted: AdjustedMap) -> None:
+        assert self.camera is not None
+        camera = colmap_camera(self.camera)
+        for index, posed in self._frames.items():
+            if posed.observations is None:
+                continue
+            segment = self._keyframes[posed.anchor].segment
+            pose = repose_frame(adjusted, segment, posed.observations, camera, self.config.global_ba)
+            if pose is not None:
+                self._reposed[index] = pose
 
     def _add_one(self, result: TrackResult) -> list[LoopRecord]:
         records = []
@@ -309,8 +372,9 @@ class LoopClosing:
             own = keyframe is not None and keyframe.id == anchor.id
             relative = np.eye(4) if own else np.linalg.inv(anchor.pose) @ result.pose
             self._frames[result.frame_index] = _PosedFrame(
-                result.frame_index, result.timestamp, anchor.id, relative
-            )
+                result.frame_index, result.timestamp, anchor.id, relative,
+                observations=None if own or not self.config.global_ba.enabled else result.observations,
+            )  # fmt: skip
             if not own:
                 self._between.setdefault(result.segment, []).append(result.frame_index)
         return records
@@ -346,6 +410,7 @@ class LoopClosing:
 
     def _add_keyframe(self, keyframe: Keyframe) -> list[LoopRecord]:
         start = time.perf_counter()
+        self.adjusted, self._reposed = None, {}  # the stream goes on: the graph is the answer again
         previous = self._previous
         if previous is None:
             step, covariance = keyframe.pose.copy(), _sigma_covariance(1e-3, 1e-3, 1e-3)
@@ -455,6 +520,9 @@ class LoopClosing:
         if not chosen:
             return []
         verifications = [self._verify(keyframe, candidate) for candidate in chosen]
+        for v in verifications:
+            if v.verified and v.correspondences is not None:
+                self._correspondences[(v.query, v.match)] = v.correspondences
         start = time.perf_counter()
         loops: list[LoopInput] = []
         positions = []  # of the verified candidates, in the order they go to the backend
@@ -622,6 +690,11 @@ class LoopClosing:
             for r in self._records
         ]
 
+    @property
+    def frames_reposed(self) -> int:
+        """Frames the global bundle adjustment posed again from their own observations."""
+        return len(self._reposed)
+
     def keyframe(self, keyframe_id: int) -> Keyframe:
         return self._keyframes[keyframe_id]
 
@@ -634,6 +707,8 @@ class LoopClosing:
         return {k: as_4x4(m) for k, m in self._sim3_estimates().items()}
 
     def _sim3_estimates(self) -> dict[int, np.ndarray]:
+        if self.adjusted is not None:
+            return self.adjusted.poses
         start = time.perf_counter()
         estimates = self.backend.estimate() if self._keyframes else {}
         self.counters.seconds["backend"] += time.perf_counter() - start
@@ -644,8 +719,10 @@ class LoopClosing:
         if self._unsettled:
             raise RuntimeError(f"{len(self._unsettled)} keyframe(s) not settled yet: call finish() first")
         anchors = self._sim3_estimates() if corrected else self._odometry_pose
+        reposed = self._reposed if corrected else {}
         poses = []
         for index in sorted(self._frames):
             posed = self._frames[index]
-            poses.append((index, posed.timestamp, posed.pose(anchors)))
+            pose = reposed[index] if index in reposed else posed.pose(anchors)
+            poses.append((index, posed.timestamp, pose))
         return poses

@@ -53,6 +53,8 @@ class Verification:
     inliers: int = 0
     relative: np.ndarray | None = None
     covariance: np.ndarray | None = None
+    #: (M, 2) keypoint indices (query, match) of the pairs the constraint rests on (PnP inliers).
+    correspondences: np.ndarray | None = None
 
     @property
     def scale(self) -> float:
@@ -249,7 +251,7 @@ class PycolmapVerifier:
             return Verification(
                 *ids, False, "PnP of the query against the match's points failed", matches, inliers
             )
-        match_from_query, pose_covariance = pnp
+        match_from_query, pose_covariance, pnp_inliers = pnp
         relative = np.eye(4)
         relative[:3, :3] = scale * match_from_query[:3, :3]
         relative[:3, 3] = match_from_query[:3, 3]
@@ -259,11 +261,13 @@ class PycolmapVerifier:
             max(_log_scale_variance(source[good], target[good]), config.min_log_scale_sigma**2),
         )
         covariance = np.diag(np.repeat(variances, (3, 3, 1)))
-        return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance)
+        correspondences = both[good][pnp_inliers]
+        return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance, correspondences)
 
     def _pnp(
         self, query: Keyframe, match_points: np.ndarray, query_indices: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """match_from_query, its covariance and the inlier mask of ``query_indices``."""
         options = pycolmap.AbsolutePoseEstimationOptions()
         options.ransac.max_error = self.config.max_reprojection_error_px
         options.ransac.random_seed = self.config.seed
@@ -278,7 +282,11 @@ class PycolmapVerifier:
             return None
         query_from_match = np.eye(4)
         query_from_match[:3, :] = np.asarray(result["cam_from_world"].matrix(), dtype=np.float64)
-        return np.linalg.inv(query_from_match), np.asarray(result["covariance"], dtype=np.float64)
+        return (
+            np.linalg.inv(query_from_match),
+            np.asarray(result["covariance"], dtype=np.float64),
+            np.asarray(result["inlier_mask"], dtype=bool),
+        )
 
 
 def _log_scale_variance(source: np.ndarray, target: np.ndarray) -> float:

@@ -35,7 +35,7 @@ import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.base import TrackingState, TrackResult
+from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor
 from frontends.mono_vo.geometry import invert, linear_map, transform
@@ -177,8 +177,11 @@ class MonoVo:
                 self.segment_map, features, cKDTree(features.points), predicted, index
             )
             if estimate is not None:
+                pose = invert(estimate.T_cw)
+                observations = _observations(features, estimate)
+                segment = self.segment_map.segment
                 results.append(
-                    TrackResult(index, timestamp, "tracking", invert(estimate.T_cw), self.segment_map.segment)
+                    TrackResult(index, timestamp, "tracking", pose, segment, observations=observations)
                 )
         self.pending = []
         return tuple(results)
@@ -194,7 +197,7 @@ class MonoVo:
         keyframe = None
         if self._needs_keyframe(frame, features, estimate):
             keyframe = self._timed("keyframe", self._add_keyframe, frame, features, estimate)
-        return self._tracked(frame, estimate.T_cw, "tracking", keyframe)
+        return self._tracked(frame, estimate.T_cw, "tracking", keyframe, _observations(features, estimate))
 
     def _relocalise(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult:
         estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index)
@@ -203,7 +206,7 @@ class MonoVo:
             self.mode = "tracking"
             self.failed_relocalisations = 0
             self.velocity = np.eye(4)
-            return self._tracked(frame, estimate.T_cw, "relocalised", None)
+            return self._tracked(frame, estimate.T_cw, "relocalised", None, _observations(features, estimate))
         self.failed_relocalisations += 1
         if self.failed_relocalisations >= self.config.relocalisation.patience:
             self._start_segment(frame)
@@ -426,6 +429,7 @@ class MonoVo:
         mapped = ids >= 0
         points3d[mapped] = transform(kf.T_cw, self.segment_map.points.positions[ids[mapped]]) / kf.scale
         kf.output.points3d = points3d
+        kf.output.point_ids = ids.copy()
 
     # -- intrinsics check --------------------------------------------------------------------------
 
@@ -451,13 +455,18 @@ class MonoVo:
     # -- helpers -----------------------------------------------------------------------------------
 
     def _tracked(
-        self, frame: Frame, T_cw: np.ndarray, state: TrackingState, keyframe: KeyframeState | None
+        self,
+        frame: Frame,
+        T_cw: np.ndarray,
+        state: TrackingState,
+        keyframe: KeyframeState | None,
+        observations: PointObservations | None = None,
     ) -> TrackResult:
         self.T_cw_last = T_cw
         self.last_frame_index = frame.index
         return TrackResult(
             frame.index, frame.timestamp, state, invert(T_cw), self.segment_map.segment,
-            keyframe.output if keyframe is not None else None,
+            keyframe.output if keyframe is not None else None, observations=observations,
         )  # fmt: skip
 
     def _result(self, frame: Frame, state: TrackingState) -> TrackResult:
@@ -475,6 +484,10 @@ def covariance_inflation(shared_points: int, settings: KeyframeSettings) -> floa
     """Factor on the odometry sigmas of two keyframes that share ``shared_points`` map points."""
     shortfall = max(1.0, settings.covariance_reference_points / max(shared_points, 1))
     return float(min(shortfall**settings.covariance_exponent, settings.max_covariance_inflation))
+
+
+def _observations(features: Features, estimate: PoseEstimate) -> PointObservations:
+    return PointObservations(features.keypoints[estimate.keypoint_idx], estimate.point_ids.copy())
 
 
 def _fraction_of_motion(T: np.ndarray, fraction: float) -> np.ndarray:

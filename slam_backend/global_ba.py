@@ -1,0 +1,355 @@
+"""Global bundle adjustment after loop closing (ORB-SLAM's full BA after the pose graph).
+
+The pose graph moves each keyframe as a whole; what its map points say about the poses between
+loops is summarised by one odometry covariance per step. Full bundle adjustment over every
+keyframe and map point, started at the pose graph's estimate, uses them all, and ties the two
+visits of a loop through the map itself: the query keyframe also observes the match keyframe's
+points at the keypoints the verifier paired with them (and the match the query's), as ORB-SLAM
+fuses the duplicated points of a loop.
+
+Input is frontend-agnostic: keyframes with ``point_ids`` (map point of each keypoint, unique within
+the keyframe's segment) and ``points3d`` (its camera-frame position in the keyframe's units), the
+backend's camera-to-world Sim(3) estimate of each, and the verified correspondences of the accepted
+loops. A point starts where its oldest observing keyframe's estimate puts it. Variables are the
+keyframes' SE(3) poses and the points' world positions, factors GTSAM projection factors on
+undistorted pixels with a Huber kernel. Gauge: in each connected part of the map (keyframes sharing
+points), the oldest keyframe is fixed and the distance to the next one is kept (the scale).
+
+Afterwards each keyframe's Sim(3) is its adjusted pose with the scale that maps its ``points3d``
+onto the adjusted points (median distance ratio), so frames posed relative to a keyframe (in its
+units) follow it. A keyframe without points keeps the pose graph's estimate.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import gtsam
+import numpy as np
+import pycolmap
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from frontends.base import PointObservations
+from frontends.errors import ConfigError
+from frontends.types import CameraIntrinsics, Keyframe
+
+log = logging.getLogger(__name__)
+
+_FIXED_SIGMA = 1e-6
+
+
+@dataclass(frozen=True)
+class GlobalBundleAdjustmentConfig:
+    #: Run it when the stream ends, if any loop was accepted.
+    enabled: bool = True
+    #: Keypoint position noise (px) and the Huber kernel's threshold in sigmas (chi2 95 %, 2 dof).
+    pixel_sigma: float = 1.0
+    huber_k: float = 2.447
+    #: Levenberg-Marquardt stops after this many iterations or when one gains less than this.
+    iterations: int = 20
+    relative_error_tolerance: float = 1e-4
+    #: Points observed by fewer keyframes do not constrain poses.
+    min_observations: int = 2
+    #: Every frame the frontend posed from map points is posed again against the adjusted points
+    #: (PnP RANSAC and refinement, pycolmap) when at least ``frame_min_inliers`` of them fit within
+    #: ``frame_max_error_px``; otherwise it follows its keyframes.
+    repose_frames: bool = True
+    frame_min_inliers: int = 20
+    frame_max_error_px: float = 4.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.pixel_sigma <= 0 or self.huber_k <= 0:
+            raise ConfigError("global_ba: pixel_sigma and huber_k must be positive")
+        if self.iterations < 1 or self.min_observations < 2:
+            raise ConfigError("global_ba: iterations must be >= 1 and min_observations >= 2")
+
+
+@dataclass(frozen=True)
+class LoopCorrespondences:
+    """Keypoint pairs of one accepted loop: (M, 2) indices into the query's and the match's keypoints."""
+
+    query: int
+    match: int
+    pairs: np.ndarray
+
+
+@dataclass(frozen=True)
+class GlobalBundleAdjustmentStats:
+    keyframes: int
+    points: int
+    observations: int
+    loop_observations: int
+    #: Median reprojection error (px) of all observations before and after.
+    median_error_before_px: float
+    median_error_after_px: float
+
+
+@dataclass(frozen=True)
+class AdjustedMap:
+    """The outcome: keyframe poses and the map points they were adjusted with."""
+
+    #: Camera-to-world Sim(3) of every keyframe of the input estimates (unchanged where the map
+    #: said nothing about it).
+    poses: dict[int, np.ndarray]
+    #: Row in ``points`` of each (segment, point id).
+    point_rows: dict[tuple[int, int], int]
+    #: (P, 3) adjusted world positions, NaN for points that were not adjusted.
+    points: np.ndarray
+    stats: GlobalBundleAdjustmentStats
+
+    def positions(self, segment: int, point_ids: np.ndarray) -> np.ndarray:
+        """World positions of a segment's points (NaN rows for points the adjustment left out)."""
+        rows = np.array([self.point_rows.get((segment, i), -1) for i in point_ids.tolist()], np.int64)
+        result = np.full((len(rows), 3), np.nan)
+        known = rows >= 0
+        result[known] = self.points[rows[known]]
+        return result
+
+
+def global_bundle_adjustment(
+    keyframes: Sequence[Keyframe],
+    estimates: Mapping[int, np.ndarray],
+    loops: Sequence[LoopCorrespondences],
+    camera: CameraIntrinsics,
+    config: GlobalBundleAdjustmentConfig = GlobalBundleAdjustmentConfig(),
+) -> AdjustedMap | None:
+    """The adjusted map, None when there was nothing to adjust (or the optimisation failed)."""
+    by_id = {kf.id: kf for kf in keyframes if kf.id in estimates and kf.point_ids is not None}
+    observations = _Observations.collect(by_id, loops, camera)
+    if observations is None:
+        return None
+    keyframe_ids, keypoint_xy, point_index, point_keys, loop_observations = observations
+    positions = _initial_points(by_id, estimates, point_keys)
+    seen = np.bincount(point_index, minlength=len(point_keys))
+    # Keyframes seeing the same point twice (a loop observation) still count once here: close enough.
+    kept = np.isfinite(positions).all(axis=1) & (seen >= config.min_observations)
+    keep_observation = kept[point_index]
+    keyframe_ids, keypoint_xy, point_index = (
+        keyframe_ids[keep_observation], keypoint_xy[keep_observation], point_index[keep_observation]
+    )  # fmt: skip
+    if len(point_index) == 0:
+        return None
+    poses = {k: _rigid(estimates[k]) for k in np.unique(keyframe_ids).tolist()}
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    calibration = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k),
+        gtsam.noiseModel.Isotropic.Sigma(2, config.pixel_sigma),
+    )
+    for kf_id, pose in poses.items():
+        values.insert(gtsam.symbol("x", kf_id), gtsam.Pose3(pose))
+    used = np.unique(point_index)
+    for index in used.tolist():
+        values.insert(index, positions[index])
+    for kf_id in poses:
+        chosen = keyframe_ids == kf_id
+        gtsam.utilities.insertProjectionFactors(
+            graph, gtsam.symbol("x", kf_id), point_index[chosen].astype(np.float64),
+            np.ascontiguousarray(keypoint_xy[chosen].T), noise, calibration,
+        )  # fmt: skip
+    _add_gauge(graph, poses, keyframe_ids, point_index)
+
+    before = _errors(graph, values)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.iterations)
+    params.setRelativeErrorTol(config.relative_error_tolerance)
+    ordering = gtsam.Ordering()
+    for index in used.tolist():  # points first: the Schur complement
+        ordering.push_back(index)
+    for kf_id in poses:
+        ordering.push_back(gtsam.symbol("x", kf_id))
+    params.setOrdering(ordering)
+    # Damping scaled by the Hessian's diagonal (Marquardt's): with GTSAM's default, identity-scaled
+    # damping the first step on a many-keyframe map can put points behind cameras (infinite cost)
+    # however large lambda grows (measured on a 110-keyframe synthetic map: no step accepted).
+    params.setDiagonalDamping(True)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError as exc:  # e.g. an indeterminant system: the pose graph's answer stands
+        log.warning("global bundle adjustment failed (%s); keeping the pose graph's estimates", exc)
+        return None
+    after = _errors(graph, result)
+    if graph.error(result) >= graph.error(values):
+        log.warning("global bundle adjustment found no better map; keeping the pose graph's estimates")
+        return None
+
+    adjusted_points = np.full((len(point_keys), 3), np.nan)
+    for index in used.tolist():
+        adjusted_points[index] = result.atPoint3(index)
+    adjusted = dict(estimates)
+    for kf_id in poses:
+        pose = result.atPose3(gtsam.symbol("x", kf_id)).matrix()
+        scale = _scale(by_id[kf_id], pose, point_keys, adjusted_points)
+        if scale is not None:
+            sim3 = pose.copy()
+            sim3[:3, :3] *= scale
+            adjusted[kf_id] = sim3
+    stats = GlobalBundleAdjustmentStats(
+        len(poses), len(used), len(point_index), loop_observations,
+        float(np.median(before)), float(np.median(after)),
+    )  # fmt: skip
+    return AdjustedMap(adjusted, point_keys, adjusted_points, stats)
+
+
+def repose_frame(
+    adjusted: AdjustedMap,
+    segment: int,
+    observations: PointObservations,
+    camera: pycolmap.Camera,
+    config: GlobalBundleAdjustmentConfig,
+) -> np.ndarray | None:
+    """Camera-to-world SE(3) of a frame from its observations of the adjusted points, None when
+    too few of them were adjusted or fit."""
+    points = adjusted.positions(segment, observations.point_ids)
+    known = np.isfinite(points).all(axis=1)
+    if known.sum() < config.frame_min_inliers:
+        return None
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = config.frame_max_error_px
+    options.ransac.random_seed = config.seed
+    result = pycolmap.estimate_and_refine_absolute_pose(
+        np.asarray(observations.keypoints, np.float64)[known], points[known], camera, options
+    )
+    if result is None or int(result["num_inliers"]) < config.frame_min_inliers:
+        return None
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :] = np.asarray(result["cam_from_world"].matrix(), dtype=np.float64)
+    return np.linalg.inv(cam_from_world)
+
+
+class _Observations:
+    """Every (keyframe, undistorted keypoint, point) triple, points as (segment, id) keys."""
+
+    @staticmethod
+    def collect(
+        keyframes: Mapping[int, Keyframe], loops: Sequence[LoopCorrespondences], camera: CameraIntrinsics
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[tuple[int, int], int], int] | None:
+        keys: dict[tuple[int, int], int] = {}
+        rows_kf: list[np.ndarray] = []
+        rows_kp: list[np.ndarray] = []
+        rows_point: list[np.ndarray] = []
+
+        def add(observer: Keyframe, keypoints: np.ndarray, owner: Keyframe, ids: np.ndarray) -> int:
+            mapped = ids >= 0
+            keypoints, ids = keypoints[mapped], ids[mapped]
+            index = np.array([keys.setdefault((owner.segment, i), len(keys)) for i in ids.tolist()], np.int64)
+            rows_kf.append(np.full(len(index), observer.id, np.int64))
+            rows_kp.append(keypoints)
+            rows_point.append(index)
+            return len(index)
+
+        for kf in keyframes.values():
+            assert kf.point_ids is not None
+            add(kf, np.arange(len(kf.point_ids)), kf, kf.point_ids)
+        loop_observations = 0
+        for loop in loops:
+            query, match = keyframes.get(loop.query), keyframes.get(loop.match)
+            if query is None or match is None or len(loop.pairs) == 0:
+                continue
+            assert query.point_ids is not None and match.point_ids is not None
+            pairs = np.asarray(loop.pairs, np.int64)
+            loop_observations += add(query, pairs[:, 0], match, match.point_ids[pairs[:, 1]])
+            loop_observations += add(match, pairs[:, 1], query, query.point_ids[pairs[:, 0]])
+        if not keys:
+            return None
+        keyframe_ids = np.concatenate(rows_kf)
+        keypoint_idx = np.concatenate(rows_kp)
+        xy = np.empty((len(keyframe_ids), 2))
+        for kf_id in np.unique(keyframe_ids).tolist():
+            chosen = keyframe_ids == kf_id
+            xy[chosen] = _undistorted(keyframes[kf_id].keypoints[keypoint_idx[chosen]], camera)
+        return keyframe_ids, xy, np.concatenate(rows_point), keys, loop_observations
+
+
+def _undistorted(keypoints: np.ndarray, camera: CameraIntrinsics) -> np.ndarray:
+    xy = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    if not any(camera.distortion) or len(xy) == 0:
+        return xy
+    K = camera.K
+    return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, np.asarray(camera.distortion), P=K).reshape(-1, 2)
+
+
+def _initial_points(
+    keyframes: Mapping[int, Keyframe], estimates: Mapping[int, np.ndarray], keys: dict[tuple[int, int], int]
+) -> np.ndarray:
+    """World position of each point from its oldest observing keyframe (NaN when none has it)."""
+    positions = np.full((len(keys), 3), np.nan)
+    for kf_id in sorted(keyframes, reverse=True):  # older keyframes overwrite newer ones
+        kf = keyframes[kf_id]
+        assert kf.point_ids is not None
+        if kf.points3d is None:
+            continue
+        mapped = np.flatnonzero((kf.point_ids >= 0) & np.isfinite(kf.points3d).all(axis=1))
+        index = np.array([keys[(kf.segment, i)] for i in kf.point_ids[mapped].tolist()], np.int64)
+        S = estimates[kf_id]
+        if len(index):
+            positions[index] = kf.points3d[mapped] @ S[:3, :3].T + S[:3, 3]
+    return positions
+
+
+def _add_gauge(
+    graph: gtsam.NonlinearFactorGraph,
+    poses: Mapping[int, np.ndarray],
+    keyframe_ids: np.ndarray,
+    point_index: np.ndarray,
+) -> None:
+    """Per connected part of the map: the oldest keyframe fixed, its distance to the next kept."""
+    ids = np.array(sorted(poses))
+    row = np.searchsorted(ids, keyframe_ids)
+    incidence = coo_matrix((np.ones(len(row)), (row, point_index)), shape=(len(ids), point_index.max() + 1))
+    adjacency = (incidence @ incidence.T).tocsr()
+    _, labels = connected_components(adjacency, directed=False)
+    tight6 = gtsam.noiseModel.Isotropic.Sigma(6, _FIXED_SIGMA)
+    tight1 = gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA)
+    for label in np.unique(labels).tolist():
+        members = ids[labels == label].tolist()
+        first = members[0]
+        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first), gtsam.Pose3(poses[first]), tight6))
+        if len(members) > 1:
+            second = members[1]
+            distance = float(np.linalg.norm(poses[second][:3, 3] - poses[first][:3, 3]))
+            graph.add(
+                gtsam.RangeFactorPose3(gtsam.symbol("x", first), gtsam.symbol("x", second), distance, tight1)
+            )
+
+
+def _errors(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
+    """Reprojection error (px) of every projection factor."""
+    errors = []
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if isinstance(factor, gtsam.GenericProjectionFactorCal3_S2):
+            errors.append(float(np.linalg.norm(factor.unwhitenedError(values))))
+    return np.asarray(errors)
+
+
+def _scale(
+    keyframe: Keyframe, pose: np.ndarray, keys: dict[tuple[int, int], int], adjusted_points: np.ndarray
+) -> float | None:
+    """The factor from the keyframe's own units (``points3d``) to the adjusted map's."""
+    assert keyframe.point_ids is not None
+    if keyframe.points3d is None:
+        return None
+    mapped = np.flatnonzero((keyframe.point_ids >= 0) & np.isfinite(keyframe.points3d).all(axis=1))
+    index = np.array([keys[(keyframe.segment, i)] for i in keyframe.point_ids[mapped].tolist()], np.int64)
+    adjusted = adjusted_points[index] if len(index) else np.zeros((0, 3))
+    found = np.isfinite(adjusted).all(axis=1)
+    if found.sum() < 3:
+        return None
+    in_camera = (adjusted[found] - pose[:3, 3]) @ pose[:3, :3]
+    own = keyframe.points3d[mapped[found]]
+    ratio = np.linalg.norm(in_camera, axis=1) / np.maximum(np.linalg.norm(own, axis=1), 1e-12)
+    return float(np.median(ratio))
+
+
+def _rigid(sim3: np.ndarray) -> np.ndarray:
+    pose = np.array(sim3, dtype=np.float64)
+    pose[:3, :3] /= float(np.cbrt(np.linalg.det(pose[:3, :3])))
+    return pose

@@ -1,0 +1,154 @@
+"""Global bundle adjustment: a drifted loop of keyframes whose two visits share no map point, tied only
+by the loop's correspondences, comes back to the true geometry; frames are posed again from the
+adjusted points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from evo.core.geometry import umeyama_alignment
+
+from frontends.base import PointObservations
+from frontends.types import CameraIntrinsics, Keyframe
+from slam_backend.global_ba import (
+    AdjustedMap,
+    GlobalBundleAdjustmentConfig,
+    GlobalBundleAdjustmentStats,
+    LoopCorrespondences,
+    global_bundle_adjustment,
+    repose_frame,
+)
+from slam_backend.verify import colmap_camera
+
+CAMERA = CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
+KEYFRAMES = 44  # 9 deg apart: keyframes 40-43 see again what 0-3 saw
+STEP_DEG = 9.0
+
+
+def _look_out(azimuth_deg: float) -> np.ndarray:
+    """Camera-to-world pose on a 2 m circle, looking out at the 5 m wall (camera z = radial)."""
+    a = np.radians(azimuth_deg)
+    radial = np.array([np.cos(a), np.sin(a), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([np.cross(down, radial), down, radial])
+    pose[:3, 3] = 2.0 * radial
+    return pose
+
+
+def _yaw(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _project(pose: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    in_camera = (points - pose[:3, 3]) @ pose[:3, :3]
+    uv = in_camera[:, :2] / in_camera[:, 2:] * CAMERA.fx + np.array([CAMERA.cx, CAMERA.cy])
+    return uv, in_camera
+
+
+def _loop_scene(seed: int = 0):
+    """True poses, keyframes (pixels with 0.5 px noise, point ids, camera-frame points with 1 %
+    depth noise), the loop's keypoint pairs, and drifted estimates (yaw and position creep)."""
+    rng = np.random.default_rng(seed)
+    azimuth = rng.uniform(0, 2 * np.pi, 3000)
+    wall = np.column_stack([5 * np.cos(azimuth), 5 * np.sin(azimuth), rng.uniform(-1.5, 1.5, 3000)])
+    near_start = np.abs(np.angle(np.exp(1j * azimuth))) < np.radians(60)
+    poses = [_look_out(STEP_DEG * k) for k in range(KEYFRAMES)]
+    keyframes, physical = [], []
+    for k, pose in enumerate(poses):
+        uv, in_camera = _project(pose, wall)
+        seen = np.flatnonzero(
+            (in_camera[:, 2] > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+        )
+        # The second visit of the start re-maps its points (new ids), as a drifting map would.
+        ids = np.where((k >= 20) & near_start[seen], seen + len(wall), seen)
+        noisy = in_camera[seen] * rng.normal(1.0, 0.01, (len(seen), 1))
+        keyframes.append(
+            Keyframe(
+                id=k, frame_index=10 * k, timestamp=float(k), pose=pose,
+                keypoints=(uv[seen] + rng.normal(0, 0.5, (len(seen), 2))).astype(np.float32),
+                points3d=noisy, point_ids=ids.astype(np.int64),
+            )
+        )  # fmt: skip
+        physical.append(seen)
+    loops = []
+    for query, match in ((41, 1), (42, 2), (43, 3)):
+        _, q_idx, m_idx = np.intersect1d(physical[query], physical[match], return_indices=True)
+        loops.append(LoopCorrespondences(query, match, np.column_stack([q_idx, m_idx])))
+    estimates = {}
+    for k, pose in enumerate(poses):
+        drifted = pose.copy()
+        drifted[:3, :3] = _yaw(np.radians(0.1) * k) @ pose[:3, :3]
+        drifted[:3, 3] = _yaw(np.radians(0.1) * k) @ pose[:3, 3] + np.array([0.006, -0.004, 0.003]) * k
+        estimates[k] = drifted
+    return poses, keyframes, loops, estimates, wall
+
+
+def _aligned_error(estimates: dict[int, np.ndarray], poses: list[np.ndarray]) -> float:
+    """RMS position error after the best similarity (the gauge of a monocular map)."""
+    estimated = np.array([estimates[k][:3, 3] for k in range(len(poses))]).T
+    truth = np.array([p[:3, 3] for p in poses]).T
+    r, t, s = umeyama_alignment(estimated, truth, with_scale=True)
+    return float(np.sqrt(np.mean(np.sum((s * r @ estimated + t[:, None] - truth) ** 2, axis=0))))
+
+
+def test_loop_correspondences_undo_the_drift() -> None:
+    poses, keyframes, loops, estimates, _ = _loop_scene()
+    before = _aligned_error(estimates, poses)
+    adjusted = global_bundle_adjustment(keyframes, estimates, loops, CAMERA)
+    assert adjusted is not None
+    after = _aligned_error(adjusted.poses, poses)
+    assert before > 0.05  # the creep: 0.1 deg and 8 mm per keyframe
+    assert after < 0.1 * before, (before, after)
+    stats = adjusted.stats
+    assert stats.keyframes == KEYFRAMES and stats.loop_observations > 0
+    assert stats.median_error_after_px < stats.median_error_before_px
+    # Each keyframe's scale maps its own points3d onto the adjusted map (all keyframes' units were
+    # equal, so the scales agree with each other).
+    scales = np.array([np.cbrt(np.linalg.det(adjusted.poses[k][:3, :3])) for k in range(KEYFRAMES)])
+    assert np.ptp(scales) / np.median(scales) < 0.02
+
+
+def test_the_loop_correspondences_close_the_loop() -> None:
+    """Without them the two visits share no point: bundle adjustment straightens the creep that
+    contradicts the pixels (it is not a consistent drift) but keeps the chain's own drift (from
+    depth and pixel noise), which only the loop removes (measured: 0.0123 vs 0.0056 m)."""
+    poses, keyframes, loops, estimates, _ = _loop_scene()
+    closed = global_bundle_adjustment(keyframes, estimates, loops, CAMERA)
+    open_chain = global_bundle_adjustment(keyframes, estimates, [], CAMERA)
+    assert closed is not None and open_chain is not None
+    assert open_chain.stats.loop_observations == 0
+    assert _aligned_error(closed.poses, poses) < 0.6 * _aligned_error(open_chain.poses, poses)
+
+
+def test_nothing_to_adjust_gives_none() -> None:
+    keyframe = Keyframe(id=0, frame_index=0, timestamp=0.0, pose=np.eye(4))  # no map (replay)
+    assert global_bundle_adjustment([keyframe], {0: np.eye(4)}, [], CAMERA) is None
+
+
+def test_repose_frame_from_adjusted_points() -> None:
+    rng = np.random.default_rng(3)
+    _, _, _, _, wall = _loop_scene()
+    pose = _look_out(31.0)
+    uv, in_camera = _project(pose, wall)
+    seen = np.flatnonzero((in_camera[:, 2] > 0.1) & (np.abs(uv - [320, 240]) < [320, 240]).all(axis=1))
+    stats = GlobalBundleAdjustmentStats(0, len(wall), 0, 0, 0.0, 0.0)
+    adjusted = AdjustedMap({}, {(0, i): i for i in range(len(wall))}, wall, stats)
+    observations = PointObservations(uv[seen] + rng.normal(0, 0.5, (len(seen), 2)), seen)
+    config = GlobalBundleAdjustmentConfig()
+    reposed = repose_frame(adjusted, 0, observations, colmap_camera(CAMERA), config)
+    assert reposed is not None
+    assert np.linalg.norm(reposed[:3, 3] - pose[:3, 3]) < 0.01
+    # Points of another segment, or too few adjusted points: the frame keeps its old pose.
+    assert repose_frame(adjusted, 1, observations, colmap_camera(CAMERA), config) is None
+    few = PointObservations(observations.keypoints[:10], observations.point_ids[:10])
+    assert repose_frame(adjusted, 0, few, colmap_camera(CAMERA), config) is None
+
+
+@pytest.mark.parametrize("field, value", [("pixel_sigma", 0.0), ("iterations", 0), ("min_observations", 1)])
+def test_bad_settings_are_config_errors(field: str, value: float) -> None:
+    from frontends.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="global_ba"):
+        GlobalBundleAdjustmentConfig(**{field: value})
