@@ -354,7 +354,8 @@ class LoopClosing:
             if posed.observations is None:
                 continue
             segment = self._keyframes[posed.anchor].segment
-            pose = repose_frame(adjusted, segment, posed.observations, camera, self.config.global_ba)
+            initial = posed.pose(adjusted.poses)
+            pose = repose_frame(adjusted, segment, posed.observations, initial, camera, self.config.global_ba)
             if pose is not None:
                 self._reposed[index] = pose
 

@@ -137,13 +137,17 @@ def test_repose_frame_from_adjusted_points() -> None:
     adjusted = AdjustedMap({}, {(0, i): i for i in range(len(wall))}, wall, stats)
     observations = PointObservations(uv[seen] + rng.normal(0, 0.5, (len(seen), 2)), seen)
     config = GlobalBundleAdjustmentConfig()
-    reposed = repose_frame(adjusted, 0, observations, colmap_camera(CAMERA), config)
+    camera = colmap_camera(CAMERA)
+    start = _look_out(31.5)  # where the keyframes put it: 0.5 deg and 1.7 cm off
+    reposed = repose_frame(adjusted, 0, observations, start, camera, config)
     assert reposed is not None
-    assert np.linalg.norm(reposed[:3, 3] - pose[:3, 3]) < 0.01
-    # Points of another segment, or too few adjusted points: the frame keeps its old pose.
-    assert repose_frame(adjusted, 1, observations, colmap_camera(CAMERA), config) is None
+    assert np.linalg.norm(reposed[:3, 3] - pose[:3, 3]) < 0.005
+    # Points of another segment, too few adjusted points, or a start far from what the points say:
+    # the frame keeps the pose its keyframes give it.
+    assert repose_frame(adjusted, 1, observations, start, camera, config) is None
     few = PointObservations(observations.keypoints[:10], observations.point_ids[:10])
-    assert repose_frame(adjusted, 0, few, colmap_camera(CAMERA), config) is None
+    assert repose_frame(adjusted, 0, few, start, camera, config) is None
+    assert repose_frame(adjusted, 0, observations, _look_out(50.0), camera, config) is None
 
 
 @pytest.mark.parametrize("field, value", [("pixel_sigma", 0.0), ("iterations", 0), ("min_observations", 1)])
