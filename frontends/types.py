@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
 
@@ -61,6 +62,14 @@ class CameraIntrinsics:
     @property
     def is_distorted(self) -> bool:
         return any(abs(d) > 0 for d in self.distortion)
+
+    def undistort(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) pixel positions in the undistorted image (float64)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not self.is_distorted or len(xy) == 0:
+            return xy
+        K = self.K
+        return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, self.dist_coeffs, P=K).reshape(-1, 2)
 
     def with_size(self, width: int, height: int) -> CameraIntrinsics:
         """The same camera for an image resized to ``width`` x ``height``."""

@@ -26,7 +26,6 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-import cv2
 import gtsam
 import numpy as np
 import pycolmap
@@ -36,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from frontends.base import PointObservations
 from frontends.errors import ConfigError
 from frontends.types import CameraIntrinsics, Keyframe
+from slam_backend.lie import as_4x4
 
 log = logging.getLogger(__name__)
 
@@ -121,11 +121,12 @@ def global_bundle_adjustment(
 ) -> AdjustedMap | None:
     """The adjusted map, None when there was nothing to adjust (or the optimisation failed)."""
     by_id = {kf.id: kf for kf in keyframes if kf.id in estimates and kf.point_ids is not None}
-    observations = _Observations.collect(by_id, loops, camera)
-    if observations is None:
+    observed = _collect_observations(by_id, loops, camera)
+    if observed is None:
         return None
-    keyframe_ids, keypoint_xy, point_index, point_keys, loop_observations = observations
-    positions = _initial_points(by_id, estimates, point_keys)
+    keyframe_ids, keypoint_xy, point_index = observed.keyframe_ids, observed.xy, observed.point_index
+    point_keys = observed.keys
+    positions = _initial_points(by_id, estimates, observed)
     seen = np.bincount(point_index, minlength=len(point_keys))
     # Keyframes seeing the same point twice (a loop observation) still count once here: close enough.
     kept = np.isfinite(positions).all(axis=1) & (seen >= config.min_observations)
@@ -135,7 +136,7 @@ def global_bundle_adjustment(
     )  # fmt: skip
     if len(point_index) == 0:
         return None
-    poses = {k: _rigid(estimates[k]) for k in np.unique(keyframe_ids).tolist()}
+    poses = {k: as_4x4(estimates[k]) for k in np.unique(keyframe_ids).tolist()}
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -189,13 +190,13 @@ def global_bundle_adjustment(
     )
     adjusted = dict(estimates)
     for kf_id, pose in adjusted_poses.items():
-        scale = _scale(by_id[kf_id], pose, point_keys, adjusted_points)
+        scale = _scale(by_id[kf_id].points3d, observed.own_rows[kf_id], pose, adjusted_points)
         if scale is not None:
             sim3 = pose.copy()
             sim3[:3, :3] *= scale
             adjusted[kf_id] = sim3
     stats = GlobalBundleAdjustmentStats(
-        len(poses), len(used), len(point_index), loop_observations,
+        len(poses), len(used), len(point_index), observed.loop_observations,
         float(np.median(before)), float(np.median(after)),
     )  # fmt: skip
     return AdjustedMap(adjusted, point_keys, adjusted_points, stats)
@@ -252,74 +253,81 @@ def _pixel_errors(
     return errors
 
 
+@dataclass(frozen=True)
 class _Observations:
-    """Every (keyframe, undistorted keypoint, point) triple, points as (segment, id) keys."""
+    """Every (keyframe, undistorted keypoint, point) triple; points are rows of ``keys``."""
 
-    @staticmethod
-    def collect(
-        keyframes: Mapping[int, Keyframe], loops: Sequence[LoopCorrespondences], camera: CameraIntrinsics
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[tuple[int, int], int], int] | None:
-        keys: dict[tuple[int, int], int] = {}
-        rows_kf: list[np.ndarray] = []
-        rows_kp: list[np.ndarray] = []
-        rows_point: list[np.ndarray] = []
-
-        def add(observer: Keyframe, keypoints: np.ndarray, owner: Keyframe, ids: np.ndarray) -> int:
-            mapped = ids >= 0
-            keypoints, ids = keypoints[mapped], ids[mapped]
-            index = np.array([keys.setdefault((owner.segment, i), len(keys)) for i in ids.tolist()], np.int64)
-            rows_kf.append(np.full(len(index), observer.id, np.int64))
-            rows_kp.append(keypoints)
-            rows_point.append(index)
-            return len(index)
-
-        for kf in keyframes.values():
-            assert kf.point_ids is not None
-            add(kf, np.arange(len(kf.point_ids)), kf, kf.point_ids)
-        loop_observations = 0
-        for loop in loops:
-            query, match = keyframes.get(loop.query), keyframes.get(loop.match)
-            if query is None or match is None or len(loop.pairs) == 0:
-                continue
-            assert query.point_ids is not None and match.point_ids is not None
-            pairs = np.asarray(loop.pairs, np.int64)
-            loop_observations += add(query, pairs[:, 0], match, match.point_ids[pairs[:, 1]])
-            loop_observations += add(match, pairs[:, 1], query, query.point_ids[pairs[:, 0]])
-        if not keys:
-            return None
-        keyframe_ids = np.concatenate(rows_kf)
-        keypoint_idx = np.concatenate(rows_kp)
-        xy = np.empty((len(keyframe_ids), 2))
-        for kf_id in np.unique(keyframe_ids).tolist():
-            chosen = keyframe_ids == kf_id
-            xy[chosen] = _undistorted(keyframes[kf_id].keypoints[keypoint_idx[chosen]], camera)
-        return keyframe_ids, xy, np.concatenate(rows_point), keys, loop_observations
+    keyframe_ids: np.ndarray
+    xy: np.ndarray
+    point_index: np.ndarray
+    #: Row of each (segment, point id).
+    keys: dict[tuple[int, int], int]
+    #: Per keyframe, the row of each of its keypoints' own point (-1 where none).
+    own_rows: dict[int, np.ndarray]
+    loop_observations: int
 
 
-def _undistorted(keypoints: np.ndarray, camera: CameraIntrinsics) -> np.ndarray:
-    xy = np.asarray(keypoints, np.float64).reshape(-1, 2)
-    if not any(camera.distortion) or len(xy) == 0:
-        return xy
-    K = camera.K
-    return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, np.asarray(camera.distortion), P=K).reshape(-1, 2)
+def _collect_observations(
+    keyframes: Mapping[int, Keyframe], loops: Sequence[LoopCorrespondences], camera: CameraIntrinsics
+) -> _Observations | None:
+    keys: dict[tuple[int, int], int] = {}
+    rows_kf: list[np.ndarray] = []
+    rows_kp: list[np.ndarray] = []
+    rows_point: list[np.ndarray] = []
+
+    def add(observer: Keyframe, keypoints: np.ndarray, rows: np.ndarray) -> int:
+        mapped = rows >= 0
+        rows_kf.append(np.full(int(mapped.sum()), observer.id, np.int64))
+        rows_kp.append(keypoints[mapped])
+        rows_point.append(rows[mapped])
+        return int(mapped.sum())
+
+    own_rows = {}
+    for kf in keyframes.values():
+        assert kf.point_ids is not None
+        own_rows[kf.id] = np.array(
+            [keys.setdefault((kf.segment, i), len(keys)) if i >= 0 else -1 for i in kf.point_ids.tolist()],
+            np.int64,
+        )
+        add(kf, np.arange(len(kf.point_ids)), own_rows[kf.id])
+    loop_observations = 0
+    for loop in loops:
+        if loop.query not in keyframes or loop.match not in keyframes or len(loop.pairs) == 0:
+            continue
+        pairs = np.asarray(loop.pairs, np.int64)
+        query, match = keyframes[loop.query], keyframes[loop.match]
+        loop_observations += add(query, pairs[:, 0], own_rows[match.id][pairs[:, 1]])
+        loop_observations += add(match, pairs[:, 1], own_rows[query.id][pairs[:, 0]])
+    if not keys:
+        return None
+    keyframe_ids = np.concatenate(rows_kf)
+    keypoint_idx = np.concatenate(rows_kp)
+    xy = np.empty((len(keyframe_ids), 2))
+    for kf_id in np.unique(keyframe_ids).tolist():
+        chosen = keyframe_ids == kf_id
+        xy[chosen] = camera.undistort(keyframes[kf_id].keypoints[keypoint_idx[chosen]])
+    return _Observations(keyframe_ids, xy, np.concatenate(rows_point), keys, own_rows, loop_observations)
 
 
 def _initial_points(
-    keyframes: Mapping[int, Keyframe], estimates: Mapping[int, np.ndarray], keys: dict[tuple[int, int], int]
+    keyframes: Mapping[int, Keyframe], estimates: Mapping[int, np.ndarray], observed: _Observations
 ) -> np.ndarray:
     """World position of each point from its oldest observing keyframe (NaN when none has it)."""
-    positions = np.full((len(keys), 3), np.nan)
+    positions = np.full((len(observed.keys), 3), np.nan)
     for kf_id in sorted(keyframes, reverse=True):  # older keyframes overwrite newer ones
-        kf = keyframes[kf_id]
-        assert kf.point_ids is not None
-        if kf.points3d is None:
+        points3d = keyframes[kf_id].points3d
+        if points3d is None:
             continue
-        mapped = np.flatnonzero((kf.point_ids >= 0) & np.isfinite(kf.points3d).all(axis=1))
-        index = np.array([keys[(kf.segment, i)] for i in kf.point_ids[mapped].tolist()], np.int64)
+        rows = observed.own_rows[kf_id]
+        mapped = np.flatnonzero(_with_point(rows, points3d))
         S = estimates[kf_id]
-        if len(index):
-            positions[index] = kf.points3d[mapped] @ S[:3, :3].T + S[:3, 3]
+        positions[rows[mapped]] = points3d[mapped] @ S[:3, :3].T + S[:3, 3]
     return positions
+
+
+def _with_point(rows: np.ndarray, points3d: np.ndarray) -> np.ndarray:
+    """Keypoints with a map point and a finite position in the keyframe's camera frame."""
+    return (rows >= 0) & np.isfinite(points3d).all(axis=1)
 
 
 def _add_gauge(
@@ -368,25 +376,17 @@ def _reprojection_errors(
 
 
 def _scale(
-    keyframe: Keyframe, pose: np.ndarray, keys: dict[tuple[int, int], int], adjusted_points: np.ndarray
+    points3d: np.ndarray | None, rows: np.ndarray, pose: np.ndarray, adjusted_points: np.ndarray
 ) -> float | None:
-    """The factor from the keyframe's own units (``points3d``) to the adjusted map's."""
-    assert keyframe.point_ids is not None
-    if keyframe.points3d is None:
+    """The factor from a keyframe's own units (its ``points3d``, at point ``rows``) to the adjusted map's."""
+    if points3d is None:
         return None
-    mapped = np.flatnonzero((keyframe.point_ids >= 0) & np.isfinite(keyframe.points3d).all(axis=1))
-    index = np.array([keys[(keyframe.segment, i)] for i in keyframe.point_ids[mapped].tolist()], np.int64)
-    adjusted = adjusted_points[index] if len(index) else np.zeros((0, 3))
+    mapped = np.flatnonzero(_with_point(rows, points3d))
+    adjusted = adjusted_points[rows[mapped]]
     found = np.isfinite(adjusted).all(axis=1)
     if found.sum() < 3:
         return None
     in_camera = (adjusted[found] - pose[:3, 3]) @ pose[:3, :3]
-    own = keyframe.points3d[mapped[found]]
+    own = points3d[mapped[found]]
     ratio = np.linalg.norm(in_camera, axis=1) / np.maximum(np.linalg.norm(own, axis=1), 1e-12)
     return float(np.median(ratio))
-
-
-def _rigid(sim3: np.ndarray) -> np.ndarray:
-    pose = np.array(sim3, dtype=np.float64)
-    pose[:3, :3] /= float(np.cbrt(np.linalg.det(pose[:3, :3])))
-    return pose

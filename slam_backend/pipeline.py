@@ -281,6 +281,9 @@ class LoopClosing:
         #: posed again (camera-to-world SE(3) by frame index).
         self.adjusted: AdjustedMap | None = None
         self._reposed: dict[int, np.ndarray] = {}
+        #: Frames keep what they were posed from only when a global bundle adjustment can use it.
+        ba = config.global_ba
+        self._keeps_observations = ba.enabled and ba.repose_frames and camera is not None
 
     def _bridge_test(self) -> PairwiseConsistency:
         chain = OdometryChain(pose_group("sim3"))
@@ -374,7 +377,7 @@ class LoopClosing:
             relative = np.eye(4) if own else np.linalg.inv(anchor.pose) @ result.pose
             self._frames[result.frame_index] = _PosedFrame(
                 result.frame_index, result.timestamp, anchor.id, relative,
-                observations=None if own or not self.config.global_ba.enabled else result.observations,
+                observations=None if own or not self._keeps_observations else result.observations,
             )  # fmt: skip
             if not own:
                 self._between.setdefault(result.segment, []).append(result.frame_index)

@@ -90,16 +90,8 @@ class OrbExtractor:
             self.settings.grid_rows, self.budget,
         )  # fmt: skip
         xy = xy[keep]
-        return Features(
-            xy, self.undistort(xy), np.ascontiguousarray(descriptors[keep]), octaves[keep], angles[keep]
-        )
-
-    def undistort(self, xy: np.ndarray) -> np.ndarray:
-        if not self.camera.is_distorted or len(xy) == 0:
-            return xy.astype(np.float64)
-        K = self.camera.K
-        points = cv2.undistortPoints(xy.reshape(-1, 1, 2).astype(np.float64), K, self.camera.dist_coeffs, P=K)
-        return points.reshape(-1, 2)
+        descriptors = np.ascontiguousarray(descriptors[keep])
+        return Features(xy, self.camera.undistort(xy), descriptors, octaves[keep], angles[keep])
 
 
 def spread_over_grid(
