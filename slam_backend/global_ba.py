@@ -272,15 +272,16 @@ def _collect_observations(
 ) -> _Observations | None:
     keys: dict[tuple[int, int], int] = {}
     rows_kf: list[np.ndarray] = []
-    rows_kp: list[np.ndarray] = []
+    rows_xy: list[np.ndarray] = []
     rows_point: list[np.ndarray] = []
 
     def add(observer: Keyframe, keypoints: np.ndarray, rows: np.ndarray) -> int:
         mapped = rows >= 0
-        rows_kf.append(np.full(int(mapped.sum()), observer.id, np.int64))
-        rows_kp.append(keypoints[mapped])
+        count = int(mapped.sum())
+        rows_kf.append(np.full(count, observer.id, np.int64))
+        rows_xy.append(camera.undistort(observer.keypoints[keypoints[mapped]]))
         rows_point.append(rows[mapped])
-        return int(mapped.sum())
+        return count
 
     own_rows = {}
     for kf in keyframes.values():
@@ -300,13 +301,10 @@ def _collect_observations(
         loop_observations += add(match, pairs[:, 1], own_rows[query.id][pairs[:, 0]])
     if not keys:
         return None
-    keyframe_ids = np.concatenate(rows_kf)
-    keypoint_idx = np.concatenate(rows_kp)
-    xy = np.empty((len(keyframe_ids), 2))
-    for kf_id in np.unique(keyframe_ids).tolist():
-        chosen = keyframe_ids == kf_id
-        xy[chosen] = camera.undistort(keyframes[kf_id].keypoints[keypoint_idx[chosen]])
-    return _Observations(keyframe_ids, xy, np.concatenate(rows_point), keys, own_rows, loop_observations)
+    return _Observations(
+        np.concatenate(rows_kf), np.concatenate(rows_xy), np.concatenate(rows_point), keys, own_rows,
+        loop_observations,
+    )  # fmt: skip
 
 
 def _initial_points(
