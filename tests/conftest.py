@@ -41,6 +41,20 @@ def shared() -> Path:
 
 
 @pytest.fixture(scope="session")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The output folder of ``symbio demo`` (640x480 loop, seed 0, 600 frames; ~1 min), made once.
+
+    Its rendered scene is ``DIR/scene``. The demo's oracle objects mask the walking people, which
+    keeps its odometry and loops the same from machine to machine, unlike the weak 320x240 scene.
+    """
+    from eval.cli import main as symbio_main
+
+    out = tmp_path_factory.mktemp("demo") / "out"
+    assert symbio_main(["demo", "--out", str(out), "--no-progress"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
 def small_loop_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 600-frame (20 s) 320x240 synthetic loop scene (TUM layout, GT objects and loops), made once."""
     from frontends.synth import SynthConfig, write_scene
