@@ -25,7 +25,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
 from eval.cli import main as symbio_main
-from eval.demo import ORACLE_MISS_RATE
+from eval.demo import synthetic_components
 from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, load_components, loop_truth
 from eval.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.base import TrackResult
@@ -284,7 +284,10 @@ def test_the_global_bundle_adjustment_ends_a_run_with_loops(demo_run: Path, tmp_
     it; the same scene and components run again without it."""
     out = tmp_path / "graph_only"
     argv = ["run", str(demo_run / "scene"), "--no-progress", "--out", str(out)]
-    argv += ["--object-detector", "oracle", "--set", f"object_detector.miss_rate={ORACLE_MISS_RATE}"]
+    demo = synthetic_components()
+    argv += ["--object-detector", demo.object_detector]
+    for item in demo.of("object_detector"):
+        argv += ["--set", f"object_detector.{item}"]
     assert symbio_main([*argv, "--set", "loop_closing.global_ba.enabled=false"]) == 0
     adjusted = json.loads((demo_run / METRICS_FILE).read_text())
     graph_only = json.loads((out / METRICS_FILE).read_text())
