@@ -26,6 +26,8 @@ from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotati
 from frontends.mono_vo.frontend import covariance_inflation
 from frontends.mono_vo.initializer import Initializer
 from frontends.mono_vo.tracker import PoseEstimate
+from frontends.synth import SynthConfig
+from frontends.synth.render import SceneRenderer
 from frontends.types import CameraIntrinsics, Frame
 
 
@@ -253,6 +255,35 @@ def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]]) ->
     else:
         assert {r.segment for r in recovered} == {1}
         assert all(kf.segment == 1 for kf in frontend.keyframes() if kf.frame_index >= 80)
+
+
+def test_a_lost_map_restarts_from_the_first_lost_frame(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    """The camera jumps into another room: relocalisation cannot succeed, and the new segment is
+    initialised from the first lost frame, so the frames seen since are posed in it (before, the
+    first 10 lost frames waited out the patience and kept no pose)."""
+    camera, frames = loop_frames
+    config = SynthConfig(
+        seed=11, trajectory="figure8", frames=600, width=320, height=240,
+        fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy,
+    )  # fmt: skip
+    renderer = SceneRenderer(config)
+    elsewhere = [Frame(60 + i, (60 + i) / 30, renderer.frame(200 + i).image.copy(), None) for i in range(60)]
+    frontend = create(camera)
+    results: dict[int, TrackResult] = {}
+    for result in run(frontend, [*frames[:60], *elsewhere]):
+        results[result.frame_index] = result
+        results.update((late.frame_index, late) for late in result.backfilled)
+    assert all(results[i].segment == 0 and results[i].pose is not None for i in range(20, 60))
+    jumped = [results[i] for i in range(60, 120)]
+    assert not any(r.state == "relocalised" for r in jumped), "relocalised in another room"
+    posed = [r for r in jumped if r.pose is not None]
+    assert {r.segment for r in posed} == {1}
+    # The reference of the new map is the first lost frame; at most the frames whose initialisation
+    # attempts the initialiser dropped (it moves its reference on) stay without a pose.
+    assert results[60].pose is not None and results[60].keyframe is not None
+    assert len(posed) >= 57, [r.state for r in jumped]
 
 
 @pytest.mark.xfail(

@@ -11,9 +11,14 @@ the next frame with ``prefetch``); then, by state,
   adds its observations, triangulates new points with its newest neighbours that have a baseline
   (``min_baseline_ratio`` of the median depth; keyframes only a frame or two apart see too little
   parallax to add points), runs the local bundle adjustment (``local_ba``) and culls weak points.
-* lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
-  features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
-  poses live in a new map frame: they are never spliced into the old one.
+* lost: relocalisation against recent keyframes of the segment, and at the same time a two-view
+  initialisation whose reference is the first lost frame with features. Relocalisation wins
+  while it can; once ``patience`` frames failed to relocalise, the first initialisation that
+  succeeds closes the segment and starts a new one (``segment`` += 1) from that reference, and
+  the frames seen since are posed against the new map (ORB-SLAM3 starts a new map at once, too).
+  Waiting out the patience before initialising left ~15 frames per loss without a pose (synthetic
+  loop seed 2: frames 493-507). The new segment's poses live in a new map frame: they are never
+  spliced into the old one.
 
 A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
 blackout ends in relocalisation if the camera comes back to a known view.
@@ -103,7 +108,7 @@ class MonoVo:
         self.stage_seconds["orb"] += time.perf_counter() - start
         if len(features) < self.min_features:
             if self.mode != "initialising":
-                self.mode = "lost"
+                self._lose()
             return self._result(frame, "lost")
         if self.mode == "initialising":
             return self._timed("initialise", self._initialise, frame, features)
@@ -112,7 +117,7 @@ class MonoVo:
             result = self._timed("track", self._track, frame, features, tree)
             if result is not None:
                 return result
-            self.mode = "lost"
+            self._lose()
         return self._timed("relocalise", self._relocalise, frame, features, tree)
 
     @property
@@ -128,6 +133,13 @@ class MonoVo:
     # -- states ------------------------------------------------------------------------------------
 
     def _initialise(self, frame: Frame, features: Features) -> TrackResult:
+        init = self._try_initialisation(frame, features)
+        if init is None:
+            return self._result(frame, "initialising")
+        return self._start_map(frame, features, init)
+
+    def _try_initialisation(self, frame: Frame, features: Features) -> Initialisation | None:
+        """Offer the frame to the initialiser; until it succeeds the frame waits in ``pending``."""
         init = self.initializer.try_frame(frame.index, frame.timestamp, features, frame.image)
         if init is None:
             reference = self.initializer.reference
@@ -135,7 +147,10 @@ class MonoVo:
                 self.reference_path = frame.path
             self.pending.append((frame.index, frame.timestamp, features))
             self.pending = [p for p in self.pending if reference is not None and p[0] >= reference.index]
-            return self._result(frame, "initialising")
+        return init
+
+    def _start_map(self, frame: Frame, features: Features, init: Initialisation) -> TrackResult:
+        """Keyframes 0 and 1 of the current segment from a two-view initialisation."""
         self._check_essential_share(init)
         reference_frame = Frame(
             init.reference_index, init.reference_timestamp, init.reference_image, self.reference_path
@@ -199,6 +214,13 @@ class MonoVo:
             keyframe = self._timed("keyframe", self._add_keyframe, frame, features, estimate)
         return self._tracked(frame, estimate.T_cw, "tracking", keyframe, _observations(features, estimate))
 
+    def _lose(self) -> None:
+        """Tracking failed: relocalisation starts, and so does a new initialisation (from scratch)."""
+        if self.mode == "tracking":
+            self.initializer.reset()
+            self.pending = []
+        self.mode = "lost"
+
     def _relocalise(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult:
         estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index)
         if estimate is not None:
@@ -206,13 +228,19 @@ class MonoVo:
             self.mode = "tracking"
             self.failed_relocalisations = 0
             self.velocity = np.eye(4)
+            self.initializer.reset()
+            self.pending = []
             return self._tracked(frame, estimate.T_cw, "relocalised", None, _observations(features, estimate))
         self.failed_relocalisations += 1
-        if self.failed_relocalisations >= self.config.relocalisation.patience:
-            self._start_segment(frame)
-        return self._result(frame, "lost")
+        init = self._try_initialisation(frame, features)
+        if init is None or self.failed_relocalisations < self.config.relocalisation.patience:
+            return self._result(frame, "lost")
+        self._start_segment(frame)
+        return self._start_map(frame, features, init)
 
     def _start_segment(self, frame: Frame) -> None:
+        """Close the current segment; the caller initialises the new one (``pending`` is kept:
+        those frames are posed against the new map)."""
         for kf in self.segment_map.keyframes:
             self._sync_output(kf)
         segment = self.segment_map.segment + 1
@@ -221,9 +249,6 @@ class MonoVo:
             frame.index, self.failed_relocalisations, segment,
         )  # fmt: skip
         self.segment_map = SegmentMap(segment, self.octave_sigma)
-        self.initializer.reset()
-        self.pending = []
-        self.mode = "initialising"
         self.T_cw_last = None
         self.failed_relocalisations = 0
 
