@@ -307,7 +307,9 @@ class LoopClosing:
         if frame is not None:
             self._paths[frame.index] = frame.path
         records: list[LoopRecord] = []
-        for item in sorted(result.backfilled, key=lambda r: r.frame_index):
+        # Keyframes first: frames a frontend posed before a new map's first keyframe (tracked
+        # backwards from it) are anchored to it.
+        for item in sorted(result.backfilled, key=lambda r: (r.keyframe is None, r.frame_index)):
             records += self._add_one(item)
         records += self._add_one(result)
         return records

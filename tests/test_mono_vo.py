@@ -257,12 +257,13 @@ def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]]) ->
         assert all(kf.segment == 1 for kf in frontend.keyframes() if kf.frame_index >= 80)
 
 
-def test_a_lost_map_restarts_from_the_first_lost_frame(
+def test_frames_lost_before_a_new_map_are_posed_in_it(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
-    """The camera jumps into another room: relocalisation cannot succeed, and the new segment is
-    initialised from the first lost frame, so the frames seen since are posed in it (before, the
-    first 10 lost frames waited out the patience and kept no pose)."""
+    """The camera jumps into another room: relocalisation cannot succeed, a new segment starts,
+    and the frames lost before it (and seen before its initialisation reference) are tracked
+    backwards against the new map, so the jump costs no frame its pose (before: 10 lost frames
+    waiting out the patience, plus the initialiser's dropped references, stayed without one)."""
     camera, frames = loop_frames
     config = SynthConfig(
         seed=11, trajectory="figure8", frames=600, width=320, height=240,
@@ -278,12 +279,23 @@ def test_a_lost_map_restarts_from_the_first_lost_frame(
     assert all(results[i].segment == 0 and results[i].pose is not None for i in range(20, 60))
     jumped = [results[i] for i in range(60, 120)]
     assert not any(r.state == "relocalised" for r in jumped), "relocalised in another room"
-    posed = [r for r in jumped if r.pose is not None]
-    assert {r.segment for r in posed} == {1}
-    # The reference of the new map is the first lost frame; at most the frames whose initialisation
-    # attempts the initialiser dropped (it moves its reference on) stay without a pose.
-    assert results[60].pose is not None and results[60].keyframe is not None
-    assert len(posed) >= 57, [r.state for r in jumped]
+    assert all(r.pose is not None and r.segment == 1 for r in jumped), [r.state for r in jumped]
+    first_keyframe = min(kf.frame_index for kf in frontend.keyframes() if kf.segment == 1)
+    assert first_keyframe >= 60 + frontend.config.relocalisation.patience
+    # Backwards in time the poses continue the new map's motion (the camera moves smoothly).
+    centres = np.array([r.pose[:3, 3] for r in jumped if r.pose is not None])
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    assert steps.max() < 5 * np.median(steps), steps
+
+
+def test_no_frames_kept_for_backfilling_when_disabled(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    camera, frames = loop_frames
+    frontend = create(camera, ["relocalisation.backfill_frames=0"])
+    results = run(frontend, [*frames[:60], *(black(f) for f in frames[60:63]), *frames[100:110]])
+    assert frontend.unposed == []
+    assert all(r.backfilled == () for r in results[60:])
 
 
 @pytest.mark.xfail(

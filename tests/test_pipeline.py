@@ -220,6 +220,27 @@ def test_failing_plugins_cost_one_keyframe_each(
     assert all(not r.verified and "verifier bug" in r.reason for r in verifying.loops())
 
 
+def test_frames_before_a_segments_first_keyframe_are_anchored_to_it(
+    loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
+) -> None:
+    """A frontend may pose frames before a new map's first keyframe (tracked backwards from it) and
+    hand them back with that keyframe: they are anchored to it, not dropped."""
+    _, _, keyframes = loop_run
+    closing = LoopClosing(GtsamPoseGraph(BackendConfig()))
+    first, second = keyframes[1], keyframes[2]
+    earlier = replace(first, frame_index=first.frame_index - 2, timestamp=first.timestamp - 0.1)
+    backfilled = (
+        TrackResult(earlier.frame_index, earlier.timestamp, "tracking", first.pose, 0),
+        TrackResult(first.frame_index, first.timestamp, "tracking", first.pose, 0, first),
+    )
+    result = TrackResult(second.frame_index, second.timestamp, "tracking", second.pose, 0, second, backfilled)
+    closing.add(result)
+    closing.finish()
+    poses = {index: pose for index, _, pose in closing.frame_poses(corrected=False)}
+    assert sorted(poses) == [earlier.frame_index, first.frame_index, second.frame_index]
+    np.testing.assert_allclose(poses[earlier.frame_index], poses[first.frame_index], atol=1e-9)
+
+
 # --- the command line ---------------------------------------------------------------------------------
 
 

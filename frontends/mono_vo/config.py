@@ -185,10 +185,11 @@ class RelocalisationSettings:
     #: PnP RANSAC inliers against one keyframe, and inliers after the local-map check (640x480 ref.).
     min_pnp_inliers: int = 20
     min_inliers: int = 50
-    #: Frames with features that must fail to relocalise before a new map segment may start (it
-    #: starts with the first initialisation that succeeds after that; the initialiser runs from
-    #: the first lost frame on, so the frames in between are posed in the new segment).
-    patience: int = 3
+    #: Frames with features that may fail to relocalise before a new map segment starts.
+    patience: int = 10
+    #: Frames with features and no pose (lost, or before the map's first keyframe) kept to be
+    #: tracked backwards once the camera is posed again (the newest ones; 0 keeps none).
+    backfill_frames: int = 90
 
 
 @dataclass(frozen=True)

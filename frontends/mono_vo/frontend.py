@@ -11,17 +11,18 @@ the next frame with ``prefetch``); then, by state,
   adds its observations, triangulates new points with its newest neighbours that have a baseline
   (``min_baseline_ratio`` of the median depth; keyframes only a frame or two apart see too little
   parallax to add points), runs the local bundle adjustment (``local_ba``) and culls weak points.
-* lost: relocalisation against recent keyframes of the segment, and at the same time a two-view
-  initialisation whose reference is the first lost frame with features. Relocalisation wins
-  while it can; once ``patience`` frames failed to relocalise, the first initialisation that
-  succeeds closes the segment and starts a new one (``segment`` += 1) from that reference, and
-  the frames seen since are posed against the new map (ORB-SLAM3 starts a new map at once, too).
-  Waiting out the patience before initialising left ~15 frames per loss without a pose (synthetic
-  loop seed 2: frames 493-507). The new segment's poses live in a new map frame: they are never
-  spliced into the old one.
+* lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
+  features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
+  poses live in a new map frame: they are never spliced into the old one.
 
 A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
 blackout ends in relocalisation if the camera comes back to a known view.
+
+Frames with features that got no pose (lost while relocalisation failed, or seen before the
+initialiser's final reference) are kept, the newest ``backfill_frames`` of them, and once the
+camera is posed again (a new map, or relocalisation) they are tracked against the map backwards
+in time from there, each from the pose of the frame after it. They come back as backfilled
+results: a map loss no longer leaves the frames around it without a pose.
 
 Intrinsics are checked twice per segment: at initialisation (the essential matrix, which assumes
 K, must keep nearly the fundamental matrix's inliers) and after the first keyframes (bundle-adjusted
@@ -88,6 +89,9 @@ class MonoVo:
         self.failed_relocalisations = 0
         #: Frames seen since the initialisation reference: posed against the new map once it exists.
         self.pending: list[tuple[int, float, Features]] = []
+        #: Frames with features and no pose, before ``pending`` (lost, or the initialiser's earlier
+        #: references): tracked backwards once the camera is posed again.
+        self.unposed: list[tuple[int, float, Features]] = []
         #: Boxes of objects that move on their own in a frame (``set_dynamic_objects``), and the
         #: path of the initialisation reference frame (the provider may look frames up by path).
         self.dynamic_objects: Callable[[Frame], Sequence[Sequence[float]]] | None = None
@@ -108,7 +112,7 @@ class MonoVo:
         self.stage_seconds["orb"] += time.perf_counter() - start
         if len(features) < self.min_features:
             if self.mode != "initialising":
-                self._lose()
+                self.mode = "lost"
             return self._result(frame, "lost")
         if self.mode == "initialising":
             return self._timed("initialise", self._initialise, frame, features)
@@ -117,7 +121,7 @@ class MonoVo:
             result = self._timed("track", self._track, frame, features, tree)
             if result is not None:
                 return result
-            self._lose()
+            self.mode = "lost"
         return self._timed("relocalise", self._relocalise, frame, features, tree)
 
     @property
@@ -133,24 +137,16 @@ class MonoVo:
     # -- states ------------------------------------------------------------------------------------
 
     def _initialise(self, frame: Frame, features: Features) -> TrackResult:
-        init = self._try_initialisation(frame, features)
-        if init is None:
-            return self._result(frame, "initialising")
-        return self._start_map(frame, features, init)
-
-    def _try_initialisation(self, frame: Frame, features: Features) -> Initialisation | None:
-        """Offer the frame to the initialiser; until it succeeds the frame waits in ``pending``."""
         init = self.initializer.try_frame(frame.index, frame.timestamp, features, frame.image)
         if init is None:
             reference = self.initializer.reference
             if reference is not None and reference.index == frame.index:
                 self.reference_path = frame.path
             self.pending.append((frame.index, frame.timestamp, features))
-            self.pending = [p for p in self.pending if reference is not None and p[0] >= reference.index]
-        return init
-
-    def _start_map(self, frame: Frame, features: Features, init: Initialisation) -> TrackResult:
-        """Keyframes 0 and 1 of the current segment from a two-view initialisation."""
+            if reference is not None:
+                self._keep_unposed([p for p in self.pending if p[0] < reference.index])
+                self.pending = [p for p in self.pending if p[0] >= reference.index]
+            return self._result(frame, "initialising")
         self._check_essential_share(init)
         reference_frame = Frame(
             init.reference_index, init.reference_timestamp, init.reference_image, self.reference_path
@@ -167,7 +163,7 @@ class MonoVo:
         self.velocity = _fraction_of_motion(second.T_cw @ invert(first.T_cw), 1.0 / steps)
         self.mode = "tracking"
         self.failed_relocalisations = 0
-        backfilled = self._backfill(first, second)
+        backfilled = self._track_backwards(first.T_cw, first.frame_index) + self._backfill(first, second)
         return dataclasses.replace(
             self._tracked(frame, second.T_cw, "tracking", second), backfilled=backfilled
         )
@@ -214,13 +210,6 @@ class MonoVo:
             keyframe = self._timed("keyframe", self._add_keyframe, frame, features, estimate)
         return self._tracked(frame, estimate.T_cw, "tracking", keyframe, _observations(features, estimate))
 
-    def _lose(self) -> None:
-        """Tracking failed: relocalisation starts, and so does a new initialisation (from scratch)."""
-        if self.mode == "tracking":
-            self.initializer.reset()
-            self.pending = []
-        self.mode = "lost"
-
     def _relocalise(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult:
         estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index)
         if estimate is not None:
@@ -228,19 +217,43 @@ class MonoVo:
             self.mode = "tracking"
             self.failed_relocalisations = 0
             self.velocity = np.eye(4)
-            self.initializer.reset()
-            self.pending = []
-            return self._tracked(frame, estimate.T_cw, "relocalised", None, _observations(features, estimate))
+            return dataclasses.replace(
+                self._tracked(frame, estimate.T_cw, "relocalised", None, _observations(features, estimate)),
+                backfilled=self._track_backwards(estimate.T_cw, frame.index),
+            )
+        self._keep_unposed([(frame.index, frame.timestamp, features)])
         self.failed_relocalisations += 1
-        init = self._try_initialisation(frame, features)
-        if init is None or self.failed_relocalisations < self.config.relocalisation.patience:
-            return self._result(frame, "lost")
-        self._start_segment(frame)
-        return self._start_map(frame, features, init)
+        if self.failed_relocalisations >= self.config.relocalisation.patience:
+            self._start_segment(frame)
+        return self._result(frame, "lost")
+
+    def _keep_unposed(self, frames: Sequence[tuple[int, float, Features]]) -> None:
+        kept = [*self.unposed, *frames]
+        self.unposed = kept[len(kept) - min(self.config.relocalisation.backfill_frames, len(kept)) :]
+
+    def _track_backwards(self, T_cw: np.ndarray, frame_index: int) -> tuple[TrackResult, ...]:
+        """Pose the kept unposed frames before ``frame_index`` (posed at ``T_cw``) against the
+        current map, newest first, each predicted from the frame after it with the inverse of the
+        constant-velocity motion; a frame that does not track stays unposed."""
+        results = []
+        backwards = invert(self.velocity)
+        later_pose, later_index = T_cw, frame_index
+        for index, timestamp, features in reversed(self.unposed):
+            if index >= frame_index:
+                continue
+            predicted = _fraction_of_motion(backwards, later_index - index) @ later_pose
+            tree = cKDTree(features.points)
+            estimate = self.tracker.track(self.segment_map, features, tree, predicted, index)
+            if estimate is None:
+                continue
+            pose, seen = invert(estimate.T_cw), _observations(features, estimate)
+            segment = self.segment_map.segment
+            results.append(TrackResult(index, timestamp, "tracking", pose, segment, observations=seen))
+            later_pose, later_index = estimate.T_cw, index
+        self.unposed = []
+        return tuple(reversed(results))
 
     def _start_segment(self, frame: Frame) -> None:
-        """Close the current segment; the caller initialises the new one (``pending`` is kept:
-        those frames are posed against the new map)."""
         for kf in self.segment_map.keyframes:
             self._sync_output(kf)
         segment = self.segment_map.segment + 1
@@ -249,6 +262,9 @@ class MonoVo:
             frame.index, self.failed_relocalisations, segment,
         )  # fmt: skip
         self.segment_map = SegmentMap(segment, self.octave_sigma)
+        self.initializer.reset()
+        self.pending = []
+        self.mode = "initialising"
         self.T_cw_last = None
         self.failed_relocalisations = 0
 
