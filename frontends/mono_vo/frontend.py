@@ -184,16 +184,9 @@ class MonoVo:
             if not first.frame_index < index < second.frame_index:
                 continue
             predicted = _fraction_of_motion(motion, (index - first.frame_index) / span) @ first.T_cw
-            estimate = self.tracker.track(
-                self.segment_map, features, cKDTree(features.points), predicted, index
-            )
-            if estimate is not None:
-                pose = invert(estimate.T_cw)
-                observations = _observations(features, estimate)
-                segment = self.segment_map.segment
-                results.append(
-                    TrackResult(index, timestamp, "tracking", pose, segment, observations=observations)
-                )
+            late = self._track_late(index, timestamp, features, predicted)
+            if late is not None:
+                results.append(late)
         self.pending = []
         return tuple(results)
 
@@ -242,16 +235,22 @@ class MonoVo:
             if index >= frame_index:
                 continue
             predicted = _fraction_of_motion(backwards, later_index - index) @ later_pose
-            tree = cKDTree(features.points)
-            estimate = self.tracker.track(self.segment_map, features, tree, predicted, index)
-            if estimate is None:
-                continue
-            pose, seen = invert(estimate.T_cw), _observations(features, estimate)
-            segment = self.segment_map.segment
-            results.append(TrackResult(index, timestamp, "tracking", pose, segment, observations=seen))
-            later_pose, later_index = estimate.T_cw, index
+            late = self._track_late(index, timestamp, features, predicted)
+            if late is not None and late.pose is not None:
+                results.append(late)
+                later_pose, later_index = invert(late.pose), index
         self.unposed = []
         return tuple(reversed(results))
+
+    def _track_late(
+        self, index: int, timestamp: float, features: Features, predicted: np.ndarray
+    ) -> TrackResult | None:
+        """A frame seen earlier, tracked against the current map from ``predicted`` (T_cw)."""
+        estimate = self.tracker.track(self.segment_map, features, cKDTree(features.points), predicted, index)
+        if estimate is None:
+            return None
+        pose, seen = invert(estimate.T_cw), _observations(features, estimate)
+        return TrackResult(index, timestamp, "tracking", pose, self.segment_map.segment, observations=seen)
 
     def _start_segment(self, frame: Frame) -> None:
         for kf in self.segment_map.keyframes:
