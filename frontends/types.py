@@ -156,6 +156,9 @@ class Keyframe:
     #: Map segment: a new segment starts after a tracking loss that relocalisation could not
     #: recover; poses of different segments share no frame until a loop reconnects them.
     segment: int = 0
+    #: (N,) standard deviation of each keypoint's position in pixels relative to the finest
+    #: detection scale (ORB: the pyramid level's scale factor); None = all equal.
+    keypoint_sigmas: np.ndarray | None = None
     #: Covariance of the motion from the previous keyframe of the segment (7x7 Sim(3) tangent order
     #: of ``slam_backend.lie``: rotation, translation, log-scale), None when unknown.
     odometry_covariance: np.ndarray | None = None

@@ -12,7 +12,9 @@ the keyframe's segment) and ``points3d`` (its camera-frame position in the keyfr
 backend's camera-to-world Sim(3) estimate of each, and the verified correspondences of the accepted
 loops. A point starts where its oldest observing keyframe's estimate puts it. Variables are the
 keyframes' SE(3) poses and the points' world positions, factors GTSAM projection factors on
-undistorted pixels with a Huber kernel. Gauge: in each connected part of the map (keyframes sharing
+undistorted pixels with a Huber kernel, each with its keypoint's sigma (``Keyframe.keypoint_sigmas``:
+an ORB keypoint found on a coarser pyramid level is located less precisely, as in the frontend's
+local bundle adjustment). Gauge: in each connected part of the map (keyframes sharing
 points), the oldest keyframe is fixed and the distance to the next one is kept (the scale).
 
 Afterwards each keyframe's Sim(3) is its adjusted pose with the scale that maps its ``points3d``
@@ -46,7 +48,9 @@ _FIXED_SIGMA = 1e-6
 class GlobalBundleAdjustmentConfig:
     #: Run it when the stream ends, if any loop was accepted.
     enabled: bool = True
-    #: Keypoint position noise (px) and the Huber kernel's threshold in sigmas (chi2 95 %, 2 dof).
+    #: Keypoint position noise (px) at the finest detection scale (times the keyframe's
+    #: ``keypoint_sigmas`` where it has them) and the Huber kernel's threshold in sigmas (chi2 95 %,
+    #: 2 dof).
     pixel_sigma: float = 1.0
     huber_k: float = 2.447
     #: Levenberg-Marquardt stops after this many iterations or when one gains less than this
@@ -134,6 +138,7 @@ def global_bundle_adjustment(
     keyframe_ids, keypoint_xy, point_index = (
         keyframe_ids[keep_observation], keypoint_xy[keep_observation], point_index[keep_observation]
     )  # fmt: skip
+    sigmas = observed.sigma[keep_observation]
     if len(point_index) == 0:
         return None
     poses = {k: as_4x4(estimates[k]) for k in np.unique(keyframe_ids).tolist()}
@@ -141,21 +146,26 @@ def global_bundle_adjustment(
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     calibration = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
-    noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k),
-        gtsam.noiseModel.Isotropic.Sigma(2, config.pixel_sigma),
-    )
     for kf_id, pose in poses.items():
         values.insert(gtsam.symbol("x", kf_id), gtsam.Pose3(pose))
     used = np.unique(point_index)
     for index in used.tolist():
         values.insert(index, positions[index])
+    noise_by_sigma: dict[float, gtsam.noiseModel.Base] = {}
     for kf_id in poses:
         chosen = keyframe_ids == kf_id
-        gtsam.utilities.insertProjectionFactors(
-            graph, gtsam.symbol("x", kf_id), point_index[chosen].astype(np.float64),
-            np.ascontiguousarray(keypoint_xy[chosen].T), noise, calibration,
-        )  # fmt: skip
+        # One batch of factors per keypoint sigma (ORB: per pyramid level) of this keyframe.
+        for sigma in np.unique(sigmas[chosen]).tolist():
+            if sigma not in noise_by_sigma:
+                noise_by_sigma[sigma] = gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k),
+                    gtsam.noiseModel.Isotropic.Sigma(2, config.pixel_sigma * sigma),
+                )
+            level = chosen & (sigmas == sigma)
+            gtsam.utilities.insertProjectionFactors(
+                graph, gtsam.symbol("x", kf_id), point_index[level].astype(np.float64),
+                np.ascontiguousarray(keypoint_xy[level].T), noise_by_sigma[sigma], calibration,
+            )  # fmt: skip
     _add_gauge(graph, poses, keyframe_ids, point_index)
 
     before = _reprojection_errors(poses, positions, keyframe_ids, keypoint_xy, point_index, camera)
@@ -265,6 +275,8 @@ class _Observations:
     #: Per keyframe, the row of each of its keypoints' own point (-1 where none).
     own_rows: dict[int, np.ndarray]
     loop_observations: int
+    #: Relative position noise of each keypoint (the observer's ``keypoint_sigmas``, else 1).
+    sigma: np.ndarray
 
 
 def _collect_observations(
@@ -274,6 +286,7 @@ def _collect_observations(
     rows_kf: list[np.ndarray] = []
     rows_xy: list[np.ndarray] = []
     rows_point: list[np.ndarray] = []
+    rows_sigma: list[np.ndarray] = []
 
     def add(observer: Keyframe, keypoints: np.ndarray, rows: np.ndarray) -> int:
         mapped = rows >= 0
@@ -281,6 +294,10 @@ def _collect_observations(
         rows_kf.append(np.full(count, observer.id, np.int64))
         rows_xy.append(camera.undistort(observer.keypoints[keypoints[mapped]]))
         rows_point.append(rows[mapped])
+        sigmas = observer.keypoint_sigmas
+        rows_sigma.append(
+            np.ones(count) if sigmas is None else np.asarray(sigmas, np.float64)[keypoints[mapped]]
+        )
         return count
 
     own_rows = {}
@@ -303,7 +320,7 @@ def _collect_observations(
         return None
     return _Observations(
         np.concatenate(rows_kf), np.concatenate(rows_xy), np.concatenate(rows_point), keys, own_rows,
-        loop_observations,
+        loop_observations, np.concatenate(rows_sigma),
     )  # fmt: skip
 
 

@@ -333,6 +333,7 @@ class MonoVo:
             id=len(self.all_keyframes), frame_index=frame.index, timestamp=frame.timestamp,
             pose=invert(T_cw), keypoints=features.keypoints, descriptors=features.descriptors,
             image=frame.image, segment=self.segment_map.segment,
+            keypoint_sigmas=self.octave_sigma[np.minimum(features.octaves, len(self.octave_sigma) - 1)],
         )  # fmt: skip
         state = KeyframeState(
             output.id,
