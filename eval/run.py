@@ -374,6 +374,14 @@ def run_odometry(
         write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
         raise
     figures = write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+    if run.results and all(r.pose is None for r in run.results):
+        log.warning(
+            "%s posed none of the %d frames: it never initialised. Likely causes: too little parallax "
+            "(a camera that stands still or only rotates), too much motion between frames (a low frame "
+            "rate or skipped frames), too few features (dark, blurred or textureless images), or wrong "
+            "intrinsics",
+            frontend.name, len(run.results),
+        )  # fmt: skip
     if checkpointer is not None:
         checkpoint.discard(out_dir)
     return figures

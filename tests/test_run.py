@@ -250,6 +250,18 @@ def test_kitti_poses_shorter_than_the_sequence(kitti_sequence: Path, tmp_path: P
 # --- the real frontend ------------------------------------------------------------------------------------
 
 
+def test_a_run_that_never_initialises_says_so(
+    small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two frames 1/30 s apart cannot initialise a monocular map: the user is told why nothing was
+    posed instead of finding an empty trajectory."""
+    pytest.importorskip("frontends.mono_vo")
+    argv = ["run", str(small_loop_scene), "--frontend", "mono-vo", "--max-frames", "2", "--no-loops"]
+    assert symbio_main([*argv, "--no-progress", "--out", str(tmp_path / "out")]) == 0
+    assert "mono-vo posed none of the 2 frames: it never initialised" in caplog.text
+    assert "too much motion between frames" in caplog.text
+
+
 def test_mono_vo_smoke(small_loop_scene: Path, tmp_path: Path) -> None:
     pytest.importorskip("frontends.mono_vo")
     out = tmp_path / "out"

@@ -9,7 +9,9 @@ of both cameras, reproject within 2.45 px and see a parallax; the best must clea
 runner-up, have enough points and a median parallax of at least 1 deg, and its direction of motion
 must agree with the best hypotheses of the frames just before (``stable_frames`` in a row: the
 camera moves smoothly, a poorly determined translation does not). Otherwise the frame is rejected
-and the next one tried; after too few matches or too many tries the reference moves on.
+and the next one tried; after too few matches or too many tries the reference moves on. When a
+reference ran out of matches before ``stable_frames`` attempts (fast motion: no reference lives
+that long), the next ones need only ``fast_motion_stable_frames`` agreeing frames.
 
 The map frame is the reference camera and the first baseline has length 1 (the map's scale).
 A fundamental matrix fitted to the same matches tells whether the intrinsics are plausible: with
@@ -69,10 +71,13 @@ class Initializer:
         self.reference: _Reference | None = None
         #: Directions (in the reference camera) of the last frames' best motion hypotheses.
         self.directions: list[np.ndarray] = []
+        #: Agreeing frames needed: ``stable_frames``, fewer once a reference ran out of matches.
+        self.stable_frames = settings.stable_frames
 
     def reset(self) -> None:
         self.reference = None
         self.directions = []
+        self.stable_frames = self.settings.stable_frames
 
     def try_frame(
         self, index: int, timestamp: float, features: Features, image: np.ndarray
@@ -87,6 +92,8 @@ class Initializer:
         flow = np.linalg.norm(reference.features.points[ref_idx] - features.points[cur_idx], axis=1)
         ref_idx, cur_idx = ref_idx[flow < self.max_flow], cur_idx[flow < self.max_flow]
         if len(ref_idx) < self.min_matches:
+            if index - reference.index <= self.settings.stable_frames:
+                self.stable_frames = min(self.stable_frames, self.settings.fast_motion_stable_frames)
             self._set_reference(index, timestamp, features, image)
             return None
         x1 = reference.features.points[ref_idx]
@@ -160,7 +167,7 @@ class Initializer:
         best_count, T_cw, good, points_w, parallax = scored[0]
         runner_up = scored[1][0] if len(scored) > 1 else 0
         direction = -T_cw[:3, :3].T @ T_cw[:3, 3]  # the camera centre seen from the reference
-        self.directions = [*self.directions, direction][-s.stable_frames :]
+        self.directions = [*self.directions, direction][-self.stable_frames :]
         # Points seen at a grazing parallax have poorly known depth: leave them for later keyframes.
         good &= parallax >= s.min_parallax_deg / 4
         best_count = int(good.sum())
@@ -178,7 +185,7 @@ class Initializer:
             )
             return None
         changes = [float(np.degrees(np.arccos(np.clip(d @ direction, -1, 1)))) for d in self.directions[:-1]]
-        if len(changes) < s.stable_frames - 1 or max(changes, default=0.0) > s.max_direction_change_deg:
+        if len(changes) < self.stable_frames - 1 or max(changes, default=0.0) > s.max_direction_change_deg:
             log.debug("frame %d: init rejected (%s, direction not yet stable: %s)", index, model, changes)
             return None
         log.info(
