@@ -11,7 +11,8 @@ bundle-adjusted poses), relative to the ground-truth path length.
 Inputs: a synthetic 640x480 scene rendered in memory with ``frontends.synth`` (``--trajectory``,
 ``--seed``, ``--frames``), and the KITTI 06 clip (1226x370) when the shared data exists
 (``SYMBIO_SHARED``, default ../shared). ``--scenes loop:21,figure8:22`` adds accuracy-only rows of
-further synthetic scenes.
+further synthetic scenes; ``--mask-movable 0.3`` masks their walking people on keyframes as the
+pipeline does with its object detector (GT boxes, each missed with that probability).
 
 Usage: ``python -m eval.bench_frontend [--frames 300] [--scenes ...] [--set key=value] [--json OUT]``.
 """
@@ -23,7 +24,7 @@ import os
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,15 +47,37 @@ KITTI_CLIP = Path("data/clips/kitti06_f000-050")
 
 def synthetic_frames(trajectory: str, seed: int, frames: int) -> tuple[CameraIntrinsics, list[Frame]]:
     """A synthetic scene rendered in memory (no disk), with ground-truth poses."""
+    camera, result, _ = synthetic_scene(trajectory, seed, frames)
+    return camera, result
+
+
+def synthetic_scene(
+    trajectory: str, seed: int, frames: int
+) -> tuple[CameraIntrinsics, list[Frame], list[list[tuple[int, int, int, int]]]]:
+    """``synthetic_frames`` and, per frame, the boxes of the movable objects (walking people)."""
     config = SynthConfig(trajectory=trajectory, seed=seed, frames=frames)  # type: ignore[arg-type]
     scene = SceneRenderer(config)
-    result = []
+    result, movable = [], []
     for index in range(frames):
         rendered = scene.frame(index)
         # Grey copies: the renderer reuses its buffers, and 600 colour frames would need 0.5 GB.
         gray = cv2.cvtColor(rendered.image, cv2.COLOR_BGR2GRAY)
         result.append(Frame(index, rendered.timestamp, gray, None, rendered.pose.copy()))
-    return config.intrinsics, result
+        movable.append([obj.box for obj in rendered.objects if obj.movable])
+    return config.intrinsics, result, movable
+
+
+def oracle_masks(
+    movable: Sequence[Sequence[tuple[int, int, int, int]]], miss_rate: float, seed: int
+) -> Callable[[Frame], list[tuple[int, int, int, int]]]:
+    """The movable objects' boxes of a frame, each missed with ``miss_rate`` (seeded per frame), as
+    the pipeline's ``oracle`` object detector gives them to the frontend for masking."""
+
+    def boxes(frame: Frame) -> list[tuple[int, int, int, int]]:
+        draws = np.random.default_rng([seed, frame.index]).random(len(movable[frame.index]))
+        return [box for box, draw in zip(movable[frame.index], draws, strict=True) if draw >= miss_rate]
+
+    return boxes
 
 
 def dataset_frames(path: Path, fmt: str | None) -> tuple[CameraIntrinsics, list[Frame]]:
@@ -63,10 +86,15 @@ def dataset_frames(path: Path, fmt: str | None) -> tuple[CameraIntrinsics, list[
 
 
 def evaluate(
-    camera: CameraIntrinsics, frames: Sequence[Frame], overrides: Sequence[str] = ()
+    camera: CameraIntrinsics,
+    frames: Sequence[Frame],
+    overrides: Sequence[str] = (),
+    dynamic_objects: Callable[[Frame], Sequence[Sequence[float]]] | None = None,
 ) -> dict[str, Any]:
-    """Run the frontend over ``frames``; speed, per-stage times, tracking states and ATE."""
+    """Run the frontend over ``frames`` (masking ``dynamic_objects(frame)`` on keyframes, if given);
+    speed, per-stage times, tracking states and ATE."""
     frontend = create(camera, overrides)
+    frontend.set_dynamic_objects(dynamic_objects)
     results: dict[int, TrackResult] = {}
     start = time.perf_counter()
     for frame in with_lookahead(frames, frontend):
@@ -167,6 +195,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scenes", default="", help="extra synthetic scenes for accuracy: kind:seed,...")
     parser.add_argument("--scene-frames", type=int, default=600)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="frontend override")
+    parser.add_argument(
+        "--mask-movable",
+        type=float,
+        metavar="MISS_RATE",
+        help="--scenes rows: mask the walking people's GT boxes on keyframes, each missed with this "
+        "probability (0.3: as the pipeline's oracle detector)",
+    )
     add_json_option(parser)
     args = parser.parse_args(argv)
 
@@ -179,8 +214,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows["kitti06_f000-050"] = bench_input("x", camera, frames, args.set)
     for item in filter(None, args.scenes.split(",")):
         kind, _, seed = item.partition(":")
-        camera, frames = synthetic_frames(kind, int(seed or 0), args.scene_frames)
-        rows[f"synth_{kind}_{seed}"] = {f"x_{k}": v for k, v in evaluate(camera, frames, args.set).items()}
+        camera, frames, movable = synthetic_scene(kind, int(seed or 0), args.scene_frames)
+        masks = (
+            None if args.mask_movable is None else oracle_masks(movable, args.mask_movable, int(seed or 0))
+        )
+        figures = evaluate(camera, frames, args.set, masks)
+        rows[f"synth_{kind}_{seed}"] = {f"x_{k}": v for k, v in figures.items()}
     rows = {name: {k[2:]: v for k, v in figures.items()} for name, figures in rows.items()}
     print_table(rows)
     if args.json:

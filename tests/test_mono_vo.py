@@ -16,14 +16,15 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from eval.bench_frontend import evaluate
+from eval.bench_frontend import evaluate, oracle_masks
 from frontends.base import FRONTENDS, Frontend, TrackResult, with_lookahead
 from frontends.config import load_config
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, DatasetError
 from frontends.mono_vo import MonoVoConfig, create
+from frontends.mono_vo.config import KeyframeSettings
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
-from frontends.mono_vo.frontend import covariance_inflation
+from frontends.mono_vo.frontend import covariance_inflation, triangulation_partners
 from frontends.mono_vo.initializer import Initializer
 from frontends.mono_vo.tracker import PoseEstimate
 from frontends.synth import SynthConfig
@@ -504,3 +505,34 @@ def test_tracked_points_in_a_narrow_strip_make_a_keyframe(
     assert not needs_keyframe(observed, 0.2)
     assert needs_keyframe(strip, 0.2)
     assert not needs_keyframe(strip, 0.05)
+
+
+def test_triangulation_partners_prefer_a_baseline_with_parallax() -> None:
+    """Among recent keyframes (newest first) that see the new keyframe's scene, those whose baseline
+    gives points at the median depth the parallax triangulation accepts (3 % of the depth: 1.7 deg)
+    come first, then the newest others above 1 %; a wide keyframe that sees another scene (before
+    a turn) is no partner unless no keyframe shares the scene."""
+    settings = KeyframeSettings()
+    depth = 2.0
+
+    def partners(ratios: list[float], shared: list[int], tracked: int = 100) -> list[int]:
+        return triangulation_partners([r * depth for r in ratios], shared, tracked, depth, settings)
+
+    assert partners([0.005, 0.02, 0.04, 0.05], [90, 80, 60, 50]) == [2, 3]
+    assert partners([0.015, 0.035, 0.02], [90, 70, 60]) == [1, 0]
+    assert partners([0.015, 0.02, 0.05], [90, 80, 5]) == [0, 1]
+    assert partners([0.005, 0.012, 0.05], [0, 0, 0]) == [2, 1]
+    assert partners([0.005], [100]) == []
+
+
+def test_oracle_masks_miss_boxes_at_their_rate() -> None:
+    """``bench_frontend --mask-movable``: every box at rate 0, none at 1, about 70 % at 0.3, the same
+    boxes each time a frame is asked (seeded per frame)."""
+    movable = [[(10 * k, 0, 10 * k + 5, 5) for k in range(10)] for _ in range(100)]
+    frames = [Frame(i, i / 30, np.zeros((4, 4), np.uint8)) for i in range(100)]
+    assert all(len(oracle_masks(movable, 0.0, 1)(f)) == 10 for f in frames)
+    assert all(len(oracle_masks(movable, 1.0, 1)(f)) == 0 for f in frames)
+    masks = oracle_masks(movable, 0.3, 1)
+    kept = sum(len(masks(f)) for f in frames)
+    assert 600 < kept < 800
+    assert [masks(f) for f in frames] == [oracle_masks(movable, 0.3, 1)(f) for f in frames]

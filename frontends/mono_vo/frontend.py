@@ -314,19 +314,18 @@ class MonoVo:
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate
     ) -> list[KeyframeState]:
-        """The newest earlier keyframes with a baseline of ``min_baseline_ratio`` x median depth."""
+        """The earlier keyframes to triangulate with (``triangulation_partners``)."""
         s = self.config.keyframes
         depths = transform(keyframe.T_cw, self.segment_map.points.positions[estimate.point_ids])[:, 2]
         median_depth = float(np.median(depths)) if len(depths) else 0.0
         center = invert(keyframe.T_cw)[:3, 3]
-        neighbours = []
-        for other in reversed(self.segment_map.keyframes[-1 - s.triangulation_window : -1]):
-            baseline = float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center))
-            if baseline >= s.min_baseline_ratio * median_depth:
-                neighbours.append(other)
-                if len(neighbours) == s.triangulation_neighbours:
-                    break
-        return neighbours
+        recent = list(reversed(self.segment_map.keyframes[-1 - s.triangulation_window : -1]))
+        baselines = [float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center)) for other in recent]
+        shared = [
+            int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum()) for other in recent
+        ]
+        chosen = triangulation_partners(baselines, shared, len(estimate.point_ids), median_depth, s)
+        return [recent[i] for i in chosen]
 
     def _new_keyframe(self, frame: Frame, T_cw: np.ndarray, features: Features) -> KeyframeState:
         output = Keyframe(
@@ -519,6 +518,26 @@ class MonoVo:
             return function(*args)
         finally:
             self.stage_seconds[stage] += time.perf_counter() - start
+
+
+def triangulation_partners(
+    baselines: Sequence[float],
+    shared: Sequence[int],
+    tracked: int,
+    median_depth: float,
+    settings: KeyframeSettings,
+) -> list[int]:
+    """Indices into the recent keyframes (newest first; their ``baselines`` to the new keyframe and
+    the ``shared`` map points with its ``tracked`` ones) of its triangulation partners. Candidates
+    see the same scene (``partner_min_shared`` of the tracked points; any keyframe when none does)
+    with a baseline of ``min_baseline_ratio`` x the median depth; the newest with
+    ``preferred_baseline_ratio`` come first, then the newest others."""
+    near = settings.min_baseline_ratio * median_depth
+    usable = [i for i, b in enumerate(baselines) if b >= near]
+    covisible = [i for i in usable if shared[i] >= settings.partner_min_shared * tracked]
+    candidates = covisible or usable
+    wide = [i for i in candidates if baselines[i] >= settings.preferred_baseline_ratio * median_depth]
+    return (wide + [i for i in candidates if i not in wide])[: settings.triangulation_neighbours]
 
 
 def covariance_inflation(shared_points: int, settings: KeyframeSettings) -> float:
