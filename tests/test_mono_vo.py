@@ -508,11 +508,11 @@ def test_tracked_points_in_a_narrow_strip_make_a_keyframe(
 
 
 def test_triangulation_partners_prefer_a_baseline_with_parallax() -> None:
-    """Among recent keyframes (newest first) that see the new keyframe's scene, those whose baseline
-    gives points at the median depth the parallax triangulation accepts (3 % of the depth: 1.7 deg)
-    come first, then the newest others above 1 %; a wide keyframe that sees another scene (before
-    a turn) is no partner unless no keyframe shares the scene."""
-    settings = KeyframeSettings()
+    """With the opt-in rule: among recent keyframes (newest first) that see the new keyframe's
+    scene, those whose baseline gives points at the median depth the parallax triangulation accepts
+    (3 % of the depth: 1.7 deg) come first, then the newest others above 1 %; a wide keyframe that
+    sees another scene (before a turn) is no partner unless no keyframe shares the scene."""
+    settings = KeyframeSettings(preferred_baseline_ratio=0.03, partner_min_shared=0.2)
     depth = 2.0
 
     def partners(ratios: list[float], shared: list[int], tracked: int = 100) -> list[int]:
@@ -536,3 +536,10 @@ def test_oracle_masks_miss_boxes_at_their_rate() -> None:
     kept = sum(len(masks(f)) for f in frames)
     assert 600 < kept < 800
     assert [masks(f) for f in frames] == [oracle_masks(movable, 0.3, 1)(f) for f in frames]
+
+
+def test_default_triangulation_partners_are_the_newest_above_the_minimum_baseline() -> None:
+    settings = KeyframeSettings()
+    depth = 2.0
+    baselines = [r * depth for r in (0.005, 0.02, 0.04, 0.012)]
+    assert triangulation_partners(baselines, [0, 90, 0, 90], 100, depth, settings) == [1, 2]

@@ -126,20 +126,19 @@ class KeyframeSettings:
     narrow_min_interval: float = 0.1
     #: Earlier keyframes the new keyframe triangulates fresh points with, among the last
     #: ``triangulation_window`` that see the same scene (``partner_min_shared`` of its tracked map
-    #: points) with a baseline of at least ``min_baseline_ratio`` of its median depth (ORB-SLAM:
-    #: 0.01): first the newest with ``preferred_baseline_ratio``, then the newest others.
-    #: Keyframes that follow each other closely (a near object sweeping through the view) would
-    #: otherwise only pair up with parallax-free neighbours. 0.01 gives a point at the median depth
-    #: 0.57 deg of parallax, under ``min_parallax_deg``: only nearer points (and those whose noise
-    #: looks like parallax) became points, and pose noise on a short baseline put a whole keyframe's
-    #: points at a quarter of the map's scale (out-and-back 1, frame 220). 0.03 gives 1.7 deg.
-    #: Without the shared-points test a wide partner from before a turn saw another scene and gave
-    #: no points (figure8 2 lost its scale). Measured: see the README.
+    #: points; any when none does) with a baseline of at least ``min_baseline_ratio`` of its median
+    #: depth (ORB-SLAM: 0.01): first the newest with ``preferred_baseline_ratio``, then the newest
+    #: others. Keyframes that follow each other closely (a near object sweeping through the view)
+    #: would otherwise only pair up with parallax-free neighbours. The defaults (0.01, 0) take the
+    #: newest keyframes above 0.01. A preferred 0.03 (1.7 deg at the median depth, where 0.01 gives
+    #: 0.57, under ``min_parallax_deg``) with ``partner_min_shared`` 0.2 is measured in the README:
+    #: it ends out-and-back 1's 8x scale collapse but makes figure8 3's start shrink, so it is not
+    #: the default.
     triangulation_neighbours: int = 2
     triangulation_window: int = 8
     min_baseline_ratio: float = 0.01
-    preferred_baseline_ratio: float = 0.03
-    partner_min_shared: float = 0.2
+    preferred_baseline_ratio: float = 0.01
+    partner_min_shared: float = 0.0
     #: Search radius (fraction of the image diagonal) around the median-depth prediction of a match.
     search_fraction: float = 0.05
     #: Lowe ratio and Hamming limit of the keyframe-to-keyframe matches for triangulation.
