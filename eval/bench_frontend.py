@@ -214,10 +214,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows["kitti06_f000-050"] = bench_input("x", camera, frames, args.set)
     for item in filter(None, args.scenes.split(",")):
         kind, _, seed = item.partition(":")
-        camera, frames, movable = synthetic_scene(kind, int(seed or 0), args.scene_frames)
-        masks = (
-            None if args.mask_movable is None else oracle_masks(movable, args.mask_movable, int(seed or 0))
-        )
+        scene_seed = int(seed or 0)
+        camera, frames, movable = synthetic_scene(kind, scene_seed, args.scene_frames)
+        masks = None if args.mask_movable is None else oracle_masks(movable, args.mask_movable, scene_seed)
         figures = evaluate(camera, frames, args.set, masks)
         rows[f"synth_{kind}_{seed}"] = {f"x_{k}": v for k, v in figures.items()}
     rows = {name: {k[2:]: v for k, v in figures.items()} for name, figures in rows.items()}

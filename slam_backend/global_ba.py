@@ -153,7 +153,7 @@ def global_bundle_adjustment(
         values.insert(index, positions[index])
     noise_by_sigma: dict[float, gtsam.noiseModel.Base] = {}
     for kf_id in poses:
-        chosen = keyframe_ids == kf_id
+        chosen = np.flatnonzero(keyframe_ids == kf_id)
         # One batch of factors per keypoint sigma (ORB: per pyramid level) of this keyframe.
         for sigma in np.unique(sigmas[chosen]).tolist():
             if sigma not in noise_by_sigma:
@@ -161,7 +161,7 @@ def global_bundle_adjustment(
                     gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k),
                     gtsam.noiseModel.Isotropic.Sigma(2, config.pixel_sigma * sigma),
                 )
-            level = chosen & (sigmas == sigma)
+            level = chosen[sigmas[chosen] == sigma]
             gtsam.utilities.insertProjectionFactors(
                 graph, gtsam.symbol("x", kf_id), point_index[level].astype(np.float64),
                 np.ascontiguousarray(keypoint_xy[level].T), noise_by_sigma[sigma], calibration,
