@@ -8,6 +8,7 @@ value against the field's type and names the file and line of anything it reject
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -106,6 +107,9 @@ def apply_mapping(
     return dataclasses.replace(config, **changes)
 
 
+_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def coerce(value: Any, annotation: Any, what: str) -> Any:
     """Check ``value`` against a field annotation; convert lossless cases (int -> float, list -> tuple)."""
     origin = typing.get_origin(annotation)
@@ -133,6 +137,9 @@ def coerce(value: Any, annotation: Any, what: str) -> Any:
             raise ConfigError(f"{what}: expected {len(args)} values, got {len(value)}")
         return tuple(coerce(v, a, what) for v, a in zip(value, args, strict=True))
     if annotation is float:
+        if isinstance(value, str):
+            # YAML 1.1 reads exponents without a dot ("1e-6") as strings.
+            value = float(value) if _EXPONENT.fullmatch(value.strip()) else value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{what}: expected a number, got {value!r}")
         return float(value)

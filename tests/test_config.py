@@ -35,6 +35,17 @@ def test_defaults_yaml_then_overrides(tmp_path: Path) -> None:
     assert config_to_dict(config)["sizes"] == [4, 5, 6]
 
 
+def test_exponents_without_a_dot_are_numbers(tmp_path: Path) -> None:
+    # YAML 1.1 reads "1e-6" as a string; a float field takes it as the number it means.
+    path = tmp_path / "c.yaml"
+    path.write_text("ratio: 2E3\ninner:\n  radius: -1.5e-2\n")
+    assert load_config(Outer, path, []) == Outer(ratio=2000.0, inner=Inner(radius=-0.015))
+    assert load_config(Outer, None, ["ratio=1e-6"]).ratio == 1e-6
+    assert load_config(Outer, None, ["inner.name=1e-6"]).inner.name == "1e-6"  # a string field keeps it
+    with pytest.raises(ConfigError, match="expected an integer"):
+        load_config(Outer, None, ["count=1e3"])
+
+
 def test_unknown_key_names_file_and_line(tmp_path: Path) -> None:
     path = tmp_path / "c.yaml"
     path.write_text("count: 7\ninner:\n  radius: 2\n  colour: red\n")
