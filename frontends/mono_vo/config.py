@@ -202,6 +202,14 @@ class RelocalisationSettings:
     #: Frames with features and no pose (lost, or before the map's first keyframe) kept to be
     #: tracked backwards once the camera is posed again (the newest ones; 0 keeps none).
     backfill_frames: int = 90
+    #: A frame tracked after the fact keeps its pose only if its inliers fix its camera centre
+    #: (``geometry.relative_centre_sigma``) at most this many times as loosely as the frame that
+    #: tracking resumed from. Tracked backwards from far away, a frame sees the map in a narrow
+    #: strip where rotation and translation trade off: on figure8 seed 6 (init at frame 36, its
+    #: centre fixed to 0.14 % of the depth) frames 11-18 were posed from 40-190 points at
+    #: 0.5-1.6 % and ended 0.11-0.31 m off; the frames up to 3x (0.42 %) were 9-52 mm off. Such a
+    #: frame stays unposed: nothing tracks on from it.
+    backfill_max_sigma_ratio: float = 3.0
 
 
 @dataclass(frozen=True)

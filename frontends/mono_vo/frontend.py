@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor
-from frontends.mono_vo.geometry import invert, linear_map, transform
+from frontends.mono_vo.geometry import invert, linear_map, relative_centre_sigma, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -163,15 +163,20 @@ class MonoVo:
         self.velocity = _fraction_of_motion(second.T_cw @ invert(first.T_cw), 1.0 / steps)
         self.mode = "tracking"
         self.failed_relocalisations = 0
-        backfilled = self._track_backwards(first.T_cw, first.frame_index) + self._backfill(first, second)
+        first_ids = self.segment_map.live_ids(first)
+        seen = np.flatnonzero(first_ids >= 0)
+        limit = self._backfill_sigma_limit(first.T_cw, first.features, seen, first_ids[seen])
+        backfilled = self._track_backwards(first.T_cw, first.frame_index, limit) + self._backfill(
+            first, second, limit
+        )
         return dataclasses.replace(
             self._tracked(frame, second.T_cw, "tracking", second), backfilled=backfilled
         )
 
-    def _backfill(self, first: KeyframeState, second: KeyframeState) -> tuple[TrackResult, ...]:
+    def _backfill(self, first: KeyframeState, second: KeyframeState, limit: float) -> tuple[TrackResult, ...]:
         """Poses of the frames seen while initialising: the reference is keyframe 0; the frames
         between it and the second keyframe are tracked against the new map from an interpolated
-        prediction. A frame that does not track keeps its "initialising" result."""
+        prediction. A frame that does not track (``_track_late``) keeps its "initialising" result."""
         results = [
             TrackResult(
                 first.frame_index, first.timestamp, "tracking", invert(first.T_cw),
@@ -184,7 +189,7 @@ class MonoVo:
             if not first.frame_index < index < second.frame_index:
                 continue
             predicted = _fraction_of_motion(motion, (index - first.frame_index) / span) @ first.T_cw
-            late = self._track_late(index, timestamp, features, predicted)
+            late = self._track_late(index, timestamp, features, predicted, limit)
             if late is not None:
                 results.append(late)
         self.pending = []
@@ -212,7 +217,13 @@ class MonoVo:
             self.velocity = np.eye(4)
             return dataclasses.replace(
                 self._tracked(frame, estimate.T_cw, "relocalised", None, _observations(features, estimate)),
-                backfilled=self._track_backwards(estimate.T_cw, frame.index),
+                backfilled=self._track_backwards(
+                    estimate.T_cw,
+                    frame.index,
+                    self._backfill_sigma_limit(
+                        estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids
+                    ),
+                ),
             )
         self._keep_unposed([(frame.index, frame.timestamp, features)])
         self.failed_relocalisations += 1
@@ -224,10 +235,10 @@ class MonoVo:
         kept = [*self.unposed, *frames]
         self.unposed = kept[len(kept) - min(self.config.relocalisation.backfill_frames, len(kept)) :]
 
-    def _track_backwards(self, T_cw: np.ndarray, frame_index: int) -> tuple[TrackResult, ...]:
+    def _track_backwards(self, T_cw: np.ndarray, frame_index: int, limit: float) -> tuple[TrackResult, ...]:
         """Pose the kept unposed frames before ``frame_index`` (posed at ``T_cw``) against the
         current map, newest first, each predicted from the frame after it with the inverse of the
-        constant-velocity motion; a frame that does not track stays unposed."""
+        constant-velocity motion; a frame that does not track (``_track_late``) stays unposed."""
         results = []
         backwards = invert(self.velocity)
         later_pose, later_index = T_cw, frame_index
@@ -235,19 +246,38 @@ class MonoVo:
             if index >= frame_index:
                 continue
             predicted = _fraction_of_motion(backwards, later_index - index) @ later_pose
-            late = self._track_late(index, timestamp, features, predicted)
+            late = self._track_late(index, timestamp, features, predicted, limit)
             if late is not None and late.pose is not None:
                 results.append(late)
                 later_pose, later_index = invert(late.pose), index
         self.unposed = []
         return tuple(reversed(results))
 
+    def _backfill_sigma_limit(
+        self, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray, point_ids: np.ndarray
+    ) -> float:
+        """How loosely a frame tracked after the fact may fix its camera centre: ``backfill_max_sigma_ratio``
+        times as loosely as the frame tracking resumed from (posed at ``T_cw`` from those points)."""
+        return self.config.relocalisation.backfill_max_sigma_ratio * self._centre_sigma(
+            T_cw, features, keypoint_idx, point_ids
+        )
+
+    def _centre_sigma(
+        self, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray, point_ids: np.ndarray
+    ) -> float:
+        sigmas = self.octave_sigma[np.minimum(features.octaves[keypoint_idx], len(self.octave_sigma) - 1)]
+        return relative_centre_sigma(self.K, T_cw, self.segment_map.points.positions[point_ids], sigmas)
+
     def _track_late(
-        self, index: int, timestamp: float, features: Features, predicted: np.ndarray
+        self, index: int, timestamp: float, features: Features, predicted: np.ndarray, limit: float
     ) -> TrackResult | None:
-        """A frame seen earlier, tracked against the current map from ``predicted`` (T_cw)."""
+        """A frame seen earlier, tracked against the current map from ``predicted`` (T_cw); None when
+        it does not track or its inliers fix its camera centre more loosely than ``limit``
+        (``relative_centre_sigma``)."""
         estimate = self.tracker.track(self.segment_map, features, cKDTree(features.points), predicted, index)
         if estimate is None:
+            return None
+        if self._centre_sigma(estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids) > limit:
             return None
         pose, seen = invert(estimate.T_cw), _observations(features, estimate)
         return TrackResult(index, timestamp, "tracking", pose, self.segment_map.segment, observations=seen)
