@@ -175,6 +175,11 @@ def test_bad_covariance_settings_are_config_errors(override: str) -> None:
         load_config(MonoVoConfig, None, [override])
 
 
+def test_bad_backfill_setting_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="relocalisation: backfill_max_sigma_ratio must be positive"):
+        load_config(MonoVoConfig, None, ["relocalisation.backfill_max_sigma_ratio=0"])
+
+
 def test_map_points_matched_on_a_moving_object_die(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """Points mapped while the detector missed a walking person move with it: a later keyframe
     that detects the person must not keep them (here the "person" covers the whole 4th keyframe)."""

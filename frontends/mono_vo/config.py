@@ -211,6 +211,13 @@ class RelocalisationSettings:
     #: frame stays unposed: nothing tracks on from it.
     backfill_max_sigma_ratio: float = 3.0
 
+    def __post_init__(self) -> None:
+        if not self.backfill_max_sigma_ratio > 0:
+            raise ConfigError(
+                "relocalisation: backfill_max_sigma_ratio must be positive, got "
+                f"{self.backfill_max_sigma_ratio} (relocalisation.backfill_frames=0 turns backfilling off)"
+            )
+
 
 @dataclass(frozen=True)
 class IntrinsicsCheckSettings:
