@@ -111,6 +111,12 @@ def spread_over_grid(
     return np.sort(picked)
 
 
+def octave_sigmas(octave_sigma: np.ndarray, octaves: np.ndarray) -> np.ndarray:
+    """Position noise of keypoints found on pyramid levels ``octaves`` (the level's scale factor,
+    ``octave_sigma`` per level; levels past its end take the last)."""
+    return octave_sigma[np.minimum(octaves, len(octave_sigma) - 1)]
+
+
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance of two (K, 32) uint8 descriptor arrays."""
     words_a = np.ascontiguousarray(a).view(np.uint64)

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
-from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor
+from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
 from frontends.mono_vo.geometry import invert, linear_map, relative_centre_sigma, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
@@ -165,15 +165,17 @@ class MonoVo:
         self.failed_relocalisations = 0
         first_ids = self.segment_map.live_ids(first)
         seen = np.flatnonzero(first_ids >= 0)
-        limit = self._backfill_sigma_limit(first.T_cw, first.features, seen, first_ids[seen])
-        backfilled = self._track_backwards(first.T_cw, first.frame_index, limit) + self._backfill(
-            first, second, limit
+        first_sigma = self._centre_sigma(first.T_cw, first.features, seen, first_ids[seen])
+        backfilled = self._track_backwards(first.T_cw, first.frame_index, first_sigma) + self._backfill(
+            first, second, first_sigma
         )
         return dataclasses.replace(
             self._tracked(frame, second.T_cw, "tracking", second), backfilled=backfilled
         )
 
-    def _backfill(self, first: KeyframeState, second: KeyframeState, limit: float) -> tuple[TrackResult, ...]:
+    def _backfill(
+        self, first: KeyframeState, second: KeyframeState, reference_sigma: float
+    ) -> tuple[TrackResult, ...]:
         """Poses of the frames seen while initialising: the reference is keyframe 0; the frames
         between it and the second keyframe are tracked against the new map from an interpolated
         prediction. A frame that does not track (``_track_late``) keeps its "initialising" result."""
@@ -189,7 +191,7 @@ class MonoVo:
             if not first.frame_index < index < second.frame_index:
                 continue
             predicted = _fraction_of_motion(motion, (index - first.frame_index) / span) @ first.T_cw
-            late = self._track_late(index, timestamp, features, predicted, limit)
+            late = self._track_late(index, timestamp, features, predicted, reference_sigma)
             if late is not None:
                 results.append(late)
         self.pending = []
@@ -220,9 +222,7 @@ class MonoVo:
                 backfilled=self._track_backwards(
                     estimate.T_cw,
                     frame.index,
-                    self._backfill_sigma_limit(
-                        estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids
-                    ),
+                    self._centre_sigma(estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids),
                 ),
             )
         self._keep_unposed([(frame.index, frame.timestamp, features)])
@@ -235,7 +235,9 @@ class MonoVo:
         kept = [*self.unposed, *frames]
         self.unposed = kept[len(kept) - min(self.config.relocalisation.backfill_frames, len(kept)) :]
 
-    def _track_backwards(self, T_cw: np.ndarray, frame_index: int, limit: float) -> tuple[TrackResult, ...]:
+    def _track_backwards(
+        self, T_cw: np.ndarray, frame_index: int, reference_sigma: float
+    ) -> tuple[TrackResult, ...]:
         """Pose the kept unposed frames before ``frame_index`` (posed at ``T_cw``) against the
         current map, newest first, each predicted from the frame after it with the inverse of the
         constant-velocity motion; a frame that does not track (``_track_late``) stays unposed."""
@@ -246,37 +248,30 @@ class MonoVo:
             if index >= frame_index:
                 continue
             predicted = _fraction_of_motion(backwards, later_index - index) @ later_pose
-            late = self._track_late(index, timestamp, features, predicted, limit)
+            late = self._track_late(index, timestamp, features, predicted, reference_sigma)
             if late is not None and late.pose is not None:
                 results.append(late)
                 later_pose, later_index = invert(late.pose), index
         self.unposed = []
         return tuple(reversed(results))
 
-    def _backfill_sigma_limit(
-        self, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray, point_ids: np.ndarray
-    ) -> float:
-        """How loosely a frame tracked after the fact may fix its camera centre: ``backfill_max_sigma_ratio``
-        times as loosely as the frame tracking resumed from (posed at ``T_cw`` from those points)."""
-        return self.config.relocalisation.backfill_max_sigma_ratio * self._centre_sigma(
-            T_cw, features, keypoint_idx, point_ids
-        )
-
     def _centre_sigma(
         self, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray, point_ids: np.ndarray
     ) -> float:
-        sigmas = self.octave_sigma[np.minimum(features.octaves[keypoint_idx], len(self.octave_sigma) - 1)]
+        """``relative_centre_sigma`` of a pose (``T_cw``) from these keypoints and map points."""
+        sigmas = octave_sigmas(self.octave_sigma, features.octaves[keypoint_idx])
         return relative_centre_sigma(self.K, T_cw, self.segment_map.points.positions[point_ids], sigmas)
 
     def _track_late(
-        self, index: int, timestamp: float, features: Features, predicted: np.ndarray, limit: float
+        self, index: int, timestamp: float, features: Features, predicted: np.ndarray, reference_sigma: float
     ) -> TrackResult | None:
         """A frame seen earlier, tracked against the current map from ``predicted`` (T_cw); None when
-        it does not track or its inliers fix its camera centre more loosely than ``limit``
-        (``relative_centre_sigma``)."""
+        it does not track or its inliers fix its camera centre more than ``backfill_max_sigma_ratio``
+        times as loosely as the frame tracking resumed from (``reference_sigma``)."""
         estimate = self.tracker.track(self.segment_map, features, cKDTree(features.points), predicted, index)
         if estimate is None:
             return None
+        limit = self.config.relocalisation.backfill_max_sigma_ratio * reference_sigma
         if self._centre_sigma(estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids) > limit:
             return None
         pose, seen = invert(estimate.T_cw), _observations(features, estimate)
@@ -362,7 +357,7 @@ class MonoVo:
             id=len(self.all_keyframes), frame_index=frame.index, timestamp=frame.timestamp,
             pose=invert(T_cw), keypoints=features.keypoints, descriptors=features.descriptors,
             image=frame.image, segment=self.segment_map.segment,
-            keypoint_sigmas=self.octave_sigma[np.minimum(features.octaves, len(self.octave_sigma) - 1)],
+            keypoint_sigmas=octave_sigmas(self.octave_sigma, features.octaves),
         )  # fmt: skip
         state = KeyframeState(
             output.id,

@@ -25,6 +25,7 @@ import gtsam
 import numpy as np
 
 from frontends.mono_vo.config import BundleAdjustmentSettings
+from frontends.mono_vo.features import octave_sigmas
 from frontends.mono_vo.geometry import invert, project
 from frontends.mono_vo.map import KeyframeState, SegmentMap
 
@@ -176,7 +177,7 @@ def _remove_outliers(
     for kf, keypoint_idx, ids in observations:
         uv, depth = project(K, kf.T_cw, segment_map.points.positions[ids])
         error = np.nan_to_num(np.linalg.norm(uv - kf.features.points[keypoint_idx], axis=1), nan=np.inf)
-        sigma = octave_sigma[np.minimum(kf.features.octaves[keypoint_idx], len(octave_sigma) - 1)]
+        sigma = octave_sigmas(octave_sigma, kf.features.octaves[keypoint_idx])
         bad = (depth <= 0) | (error > huber_k * sigma)
         segment_map.drop_observations(kf, keypoint_idx[bad])
         removed += int(bad.sum())

@@ -35,7 +35,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.mono_vo.config import RelocalisationSettings, TrackingSettings
-from frontends.mono_vo.features import Features, consistent_rotation, match_descriptors, match_in_radius
+from frontends.mono_vo.features import (
+    Features,
+    consistent_rotation,
+    match_descriptors,
+    match_in_radius,
+    octave_sigmas,
+)
 from frontends.mono_vo.geometry import (
     fit_or_none,
     frame_seed,
@@ -253,5 +259,5 @@ class Tracker:
     ) -> np.ndarray:
         uv, depth = project(self.K, T_cw, segment_map.points.positions[point_ids])
         error = np.nan_to_num(np.linalg.norm(uv - features.points[keypoint_idx], axis=1), nan=np.inf)
-        sigma = self.octave_sigma[np.minimum(features.octaves[keypoint_idx], len(self.octave_sigma) - 1)]
+        sigma = octave_sigmas(self.octave_sigma, features.octaves[keypoint_idx])
         return (depth > 0) & (error < self.settings.inlier_threshold * sigma)

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.mono_vo.config import KeyframeSettings
-from frontends.mono_vo.features import best_two_per_group, hamming, unique_targets
+from frontends.mono_vo.features import best_two_per_group, hamming, octave_sigmas, unique_targets
 from frontends.mono_vo.geometry import (
     check_triangulated,
     epipolar_distance,
@@ -56,7 +56,7 @@ def triangulate_new_points(
     )
     own = free[np.flatnonzero(inside)[pairs["i"]]]
     other = free_neighbour[pairs["j"]]
-    sigma = octave_sigma[np.minimum(keyframe.features.octaves[own], len(octave_sigma) - 1)]
+    sigma = octave_sigmas(octave_sigma, keyframe.features.octaves[own])
     F = fundamental_from_poses(K, neighbour.T_cw, keyframe.T_cw)
     on_line = epipolar_distance(F, neighbour.features.points[other], keyframe.features.points[own]) < (
         settings.epipolar_threshold * sigma
@@ -68,7 +68,7 @@ def triangulate_new_points(
     own, other = unique_targets(own[best][accept], other[best][accept], distance[best][accept])
     x_own, x_other = keyframe.features.points[own], neighbour.features.points[other]
     points_w = triangulate(K, neighbour.T_cw, keyframe.T_cw, x_other, x_own)
-    sigma = octave_sigma[np.minimum(keyframe.features.octaves[own], len(octave_sigma) - 1)]
+    sigma = octave_sigmas(octave_sigma, keyframe.features.octaves[own])
     good, _ = check_triangulated(
         K, (neighbour.T_cw, keyframe.T_cw), (x_other, x_own), points_w, max_error_sigmas * sigma,
         settings.min_parallax_deg,
