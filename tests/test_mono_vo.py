@@ -33,6 +33,9 @@ from frontends.synth import SynthConfig
 from frontends.synth.render import SceneRenderer
 from frontends.types import CameraIntrinsics, Frame
 
+#: The opt-in neighbour search with the keyframe rule it needs (``KeyframeSettings.search_neighbours``).
+NEIGHBOUR_SEARCH = ["keyframes.search_neighbours=8", "keyframes.tracked_ratio=0.7"]
+
 
 @pytest.fixture(scope="module")
 def loop_frames(small_loop_scene: Path) -> tuple[CameraIntrinsics, list[Frame]]:
@@ -168,9 +171,11 @@ def test_odometry_covariance_grows_when_keyframes_share_few_points(
         "keyframes.covariance_reference_points=0",
         "keyframes.covariance_exponent=-1",
         "keyframes.max_covariance_inflation=0.5",
+        "keyframes.search_neighbours=-1",
+        "keyframes.search_radius=0",
     ],
 )
-def test_bad_covariance_settings_are_config_errors(override: str) -> None:
+def test_bad_keyframe_settings_are_config_errors(override: str) -> None:
     with pytest.raises(ConfigError, match="keyframes: "):
         load_config(MonoVoConfig, None, [override])
 
@@ -204,6 +209,26 @@ def test_map_points_matched_on_a_moving_object_die(loop_frames: tuple[CameraIntr
             assert (segment.keyframes[-1].point_ids < 0).all()
             return
     pytest.fail("no 4th keyframe")
+
+
+def test_new_points_are_observed_by_earlier_keyframes(
+    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+) -> None:
+    """The neighbour search records a new keyframe's points in the earlier keyframes that see them:
+    points are seen by more keyframes (their depths rest on wider baselines) and more of them are
+    confirmed before culling (measured, same keyframe rule: 3.9 -> 4.8 keyframes per point, 1124 ->
+    1602 points alive after 80 frames)."""
+    camera, frames = loop_frames
+
+    def observations_and_points(overrides: list[str]) -> tuple[float, int]:
+        frontend = create(camera, overrides)
+        run(frontend, frames[:80])
+        points = frontend.segment_map.points
+        return float(points.observations[points.alive].mean()), int(points.alive.sum())
+
+    without = observations_and_points([f for f in NEIGHBOUR_SEARCH if "search_neighbours" not in f])
+    searched = observations_and_points(NEIGHBOUR_SEARCH)
+    assert searched[0] > 1.15 * without[0] and searched[1] > 1.25 * without[1], (without, searched)
 
 
 def test_projection_matching_respects_scale_and_rotation() -> None:
@@ -382,6 +407,17 @@ def test_kitti_clip_accuracy(shared: Path) -> None:
     assert figures["posed_frames"] == len(dataset)
     assert figures["segments"] == 1
     assert figures["ate_percent_of_path"] <= 0.5
+
+
+@pytest.mark.shared
+def test_neighbour_search_is_more_accurate_on_the_kitti_clip(shared: Path) -> None:
+    """The opt-in neighbour search on real images (measured 0.142 -> 0.094 % of the path)."""
+    dataset = open_dataset(shared / "data/clips/kitti06_f000-050", "kitti")
+    frames = list(dataset)
+    default = evaluate(dataset.camera, frames)
+    searched = evaluate(dataset.camera, frames, NEIGHBOUR_SEARCH)
+    assert searched["posed_frames"] == len(frames) and searched["segments"] == 1
+    assert searched["ate_percent_of_path"] < 0.8 * default["ate_percent_of_path"]
 
 
 @pytest.mark.shared

@@ -10,7 +10,8 @@ the next frame with ``prefetch``); then, by state,
   than ``tracked_ratio`` of the last keyframe's points or ``max_interval`` has passed; the keyframe
   adds its observations, triangulates new points with its newest neighbours that have a baseline
   (``min_baseline_ratio`` of the median depth; keyframes only a frame or two apart see too little
-  parallax to add points), runs the local bundle adjustment (``local_ba``) and culls weak points.
+  parallax to add points), optionally records its points in the keyframes before it
+  (``search_neighbours``), runs the local bundle adjustment (``local_ba``) and culls weak points.
 * lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
   features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
   poses live in a new map frame: they are never spliced into the old one.
@@ -331,10 +332,37 @@ class MonoVo:
                 self.segment_map, keyframe, neighbour, self.K, self.octave_sigma, self.config.keyframes,
                 self.config.tracking.inlier_threshold, self.triangulation_radius,
             )  # fmt: skip
+        self._observe_in_neighbours(keyframe)
         self._bundle_adjust()
         self.segment_map.cull(keyframe.id)
         keyframe.output.odometry_covariance = self._odometry_covariance(previous, keyframe)
         return keyframe
+
+    def _observe_in_neighbours(self, keyframe: KeyframeState) -> None:
+        """Project the new keyframe's points into the recent keyframes and record them where an
+        unmapped keypoint matches (ORB-SLAM's SearchInNeighbors): a point triangulated by the new
+        keyframe and one partner is otherwise only ever seen by later keyframes, so its depth rests
+        on the shortest baselines and most die unconfirmed."""
+        count = self.config.keyframes.search_neighbours
+        if count <= 0:
+            return
+        ids = self.segment_map.live_ids(keyframe)
+        ids = np.unique(ids[ids >= 0])
+        for neighbour in self.segment_map.keyframes[-1 - count : -1]:
+            own = self.segment_map.live_ids(neighbour)
+            candidates = ids[~np.isin(ids, own)]
+            if len(candidates) == 0:
+                continue
+            keypoint_idx, point_ids = self.tracker.search_by_projection(
+                self.segment_map, candidates, neighbour.features, cKDTree(neighbour.features.points),
+                neighbour.T_cw, self.config.keyframes.search_radius,
+            )  # fmt: skip
+            free = (own[keypoint_idx] < 0) & ~neighbour.dynamic[keypoint_idx]
+            keypoint_idx, point_ids = keypoint_idx[free], point_ids[free]
+            fits = self.tracker.fits(
+                self.segment_map, neighbour.features, keypoint_idx, point_ids, neighbour.T_cw
+            )
+            self.segment_map.observe(neighbour, keypoint_idx[fits], point_ids[fits], newest=False)
 
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate

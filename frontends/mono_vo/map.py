@@ -118,9 +118,12 @@ class SegmentMap:
         ids = np.unique(np.concatenate(recent))
         return ids[ids >= 0]
 
-    def observe(self, keyframe: KeyframeState, keypoint_idx: np.ndarray, point_ids: np.ndarray) -> None:
-        """Record that the keyframe sees ``point_ids`` at ``keypoint_idx``; the newest observation
-        gives the descriptor, its angle and distance range, and joins the mean viewing direction."""
+    def observe(
+        self, keyframe: KeyframeState, keypoint_idx: np.ndarray, point_ids: np.ndarray, newest: bool = True
+    ) -> None:
+        """Record that the keyframe sees ``point_ids`` at ``keypoint_idx``; every observation joins
+        the mean viewing direction, the newest one (``newest``) also gives the descriptor, its angle
+        and distance range."""
         p = self.points
         keyframe.point_ids[keypoint_idx] = point_ids
         ray = p.positions[point_ids] - invert(keyframe.T_cw)[:3, 3]
@@ -128,6 +131,8 @@ class SegmentMap:
         normal = p.normals[point_ids] * p.observations[point_ids, None] + ray / distance[:, None]
         p.normals[point_ids] = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
         p.observations[point_ids] += 1
+        if not newest:
+            return
         p.descriptors[point_ids] = keyframe.features.descriptors[keypoint_idx]
         p.angles[point_ids] = keyframe.features.angles[keypoint_idx]
         octave = np.minimum(keyframe.features.octaves[keypoint_idx], len(self.octave_scale) - 1)

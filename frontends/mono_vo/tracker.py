@@ -93,9 +93,13 @@ class Tracker:
     ) -> PoseEstimate | None:
         s = self.settings
         local_ids = segment_map.local_point_ids(s.local_keyframes)
-        pairs = self._match(segment_map, local_ids, features, tree, T_predicted, s.search_radius)
+        pairs = self.search_by_projection(
+            segment_map, local_ids, features, tree, T_predicted, s.search_radius
+        )
         if len(pairs[0]) < 2 * self.min_inliers:
-            wider = self._match(segment_map, local_ids, features, tree, T_predicted, 2 * s.search_radius)
+            wider = self.search_by_projection(
+                segment_map, local_ids, features, tree, T_predicted, 2 * s.search_radius
+            )
             if len(wider[0]) > len(pairs[0]):
                 pairs = wider
         keypoint_idx, point_ids = pairs
@@ -118,10 +122,10 @@ class Tracker:
         T_cw: np.ndarray,
     ) -> PoseEstimate | None:
         """Narrow projection search around the PnP pose ``T_cw``; keeps the matches that fit it."""
-        keypoint_idx, point_ids = self._match(
+        keypoint_idx, point_ids = self.search_by_projection(
             segment_map, local_ids, features, tree, T_cw, self.settings.refine_radius
         )
-        inlier = self._inliers(segment_map, features, keypoint_idx, point_ids, T_cw)
+        inlier = self.fits(segment_map, features, keypoint_idx, point_ids, T_cw)
         keypoint_idx, point_ids = keypoint_idx[inlier], point_ids[inlier]
         if len(keypoint_idx) < 6:
             return None
@@ -165,7 +169,7 @@ class Tracker:
                 return estimate
         return None
 
-    def _match(
+    def search_by_projection(
         self,
         segment_map: SegmentMap,
         local_ids: np.ndarray,
@@ -174,6 +178,8 @@ class Tracker:
         T_cw: np.ndarray,
         radius: float,
     ) -> tuple[np.ndarray, np.ndarray]:
+        """Project ``local_ids`` from ``T_cw`` and match them to the keypoints within ``radius`` px
+        (ORB-SLAM's checks, module docstring step 2): (keypoint indices, point ids)."""
         points = segment_map.points
         s = self.settings
         uv, depth = project(self.K, T_cw, points.positions[local_ids])
@@ -249,7 +255,7 @@ class Tracker:
         )
         return from_rvec(rvec, tvec)
 
-    def _inliers(
+    def fits(
         self,
         segment_map: SegmentMap,
         features: Features,
@@ -257,6 +263,7 @@ class Tracker:
         point_ids: np.ndarray,
         T_cw: np.ndarray,
     ) -> np.ndarray:
+        """Which matches reproject within ``inlier_threshold`` pyramid sigmas from ``T_cw``."""
         uv, depth = project(self.K, T_cw, segment_map.points.positions[point_ids])
         error = np.nan_to_num(np.linalg.norm(uv - features.points[keypoint_idx], axis=1), nan=np.inf)
         sigma = octave_sigmas(self.octave_sigma, features.octaves[keypoint_idx])
