@@ -29,6 +29,7 @@ Usage: ``python -m eval.bench_pipeline [--trajectories loop,figure8,out-and-back
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import tempfile
@@ -37,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from eval.demo import synthetic_components
-from eval.run import build_loop_closing, run_odometry
+from eval.run import build_loop_closing, load_components, run_odometry
 from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
@@ -57,11 +58,17 @@ def scene(work: Path, trajectory: str, seed: int, frames: int) -> Path:
     return cached_scene(config, work / f"{trajectory}_{seed}_{frames}")
 
 
-def run_scene(folder: Path, out: Path, mode: str = "full") -> dict[str, Any]:
+def run_scene(folder: Path, out: Path, mode: str = "full", overrides: Sequence[str] = ()) -> dict[str, Any]:
     """``full``: the pipeline; ``plain``: odometry only (``symbio run --no-loops``); ``masked``:
-    odometry only with the same object detector masking movable objects as the full run."""
+    odometry only with the same object detector masking movable objects as the full run.
+    ``overrides``: ``symbio run --set`` items (a key without a section goes to the frontend)."""
     dataset = open_dataset(folder)
-    components = synthetic_components()
+    defaults = synthetic_components()
+    extra = load_components(None, overrides, {})
+    components = dataclasses.replace(
+        defaults,
+        overrides={s: [*defaults.of(s), *extra.of(s)] for s in {*defaults.overrides, *extra.overrides}},
+    )
     frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
     closing = build_loop_closing(dataset, None if mode == "plain" else components)
     if mode == "masked":
