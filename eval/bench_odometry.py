@@ -139,7 +139,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_odometry_"))
     trajectories = args.trajectories.split(",")
     jobs = [Job(t, s, f) for t in trajectories for s in seeds for f in frontend_seeds]
-    ate: dict[str, float | None] = {}
     rows: dict[str, dict[str, Any]] = {}
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         scenes = [(t, s, args.frames, work) for t in trajectories for s in seeds]
@@ -151,11 +150,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         ]  # fmt: skip
         try:
             for name, row in pool.map(_run, tasks):
-                rows[name], ate[name] = row, row["ate"]
+                rows[name] = row
                 print(name, row, flush=True)
         except ConfigError as error:  # a bad --set, raised in the first run
             parser.error(str(error))
     print_table(rows, args.collapse)
+    ate = {name: row["ate"] for name, row in rows.items()}
     summary = summarise(ate, args.collapse)
     print(
         f"\n{summary.runs} runs, {len(summary.collapses)} collapse (ATE > {args.collapse} m)"
