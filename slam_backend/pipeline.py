@@ -30,15 +30,21 @@ the final decision; ``loops()`` reports the current decision of every candidate.
 Settling: a frontend's local bundle adjustment keeps moving its newest keyframes after it hands
 them out (``SettlingFrontend.keyframes_in_flux``, mono-vo: its BA window of 6). A keyframe goes to
 the backend and the loop detector only once that many newer keyframes of its segment exist (or its
-segment ended, or ``finish()``), so its odometry step is read from poses that no longer change.
-Read at arrival instead, the steps of the first keyframes after a monocular initialisation were
-off by 0.6-0.8 deg and 20-35 % in scale (synthetic loop 0, keyframes 2-5; 0.04-0.13 deg once
-adjusted), and PCM then rejected the correct loops that reached back to them as inconsistent with
-that chain (23 of 36 verified loops). Loops are found ``keyframes_in_flux`` keyframes later.
+segment ended, or ``finish()``), so its odometry step is read from poses that no longer change
+(the first keyframe of a new segment waits for at least one, see below). Read at arrival instead,
+the steps of the first keyframes after a monocular initialisation were off by 0.6-0.8 deg and
+20-35 % in scale (synthetic loop 0, keyframes 2-5; 0.04-0.13 deg once adjusted), and PCM then
+rejected the correct loops that reached back to them as inconsistent with that chain (23 of 36
+verified loops). Loops are found ``keyframes_in_flux`` keyframes later.
 
-A new map segment (the frontend could not relocalise) is linked to the previous keyframe by an
-identity step with a very loose covariance (``segment_link_*``): the map stays one graph, and a loop
-that reaches back across the gap pulls the segment into place.
+A new map segment (the frontend could not relocalise) is linked to the previous keyframe by a
+step with a very loose covariance (``segment_link_*``): the map stays one graph, and a loop that
+reaches back across the gap pulls the segment into place. The step's mean bridges the gap at
+constant velocity (``segment_link_speed_window_s``): the camera moves on at the old segment's recent
+speed and direction for the time between the two keyframes, keeps its orientation, and the new
+segment's map units are scaled so that its own recent speed matches the old one. A monocular map
+restarts at an arbitrary scale (its first baseline), so without this the odometry after a restart
+was off by the ratio of the two scales (synthetic loop 2: 3x) even where each segment was right.
 """
 
 from __future__ import annotations
@@ -89,6 +95,16 @@ class LoopClosingConfig:
     segment_link_rotation_sigma: float = 1.0
     segment_link_translation_sigma: float = 100.0
     segment_link_log_scale_sigma: float = 1.0
+    #: Seconds of each segment's keyframes (the old one's last, the new one's first, as far as
+    #: received) whose median speed sets the link's scale and length; 0 links by identity instead.
+    segment_link_speed_window_s: float = 2.0
+    #: ... unless that changes the new map's scale by more than this factor against the identity
+    #: link. Each initialisation sets its map's unit to a baseline that gives ~1 deg of parallax,
+    #: so two maps of one scene start within a small factor of each other; a larger change means
+    #: the old map's scale had run away before it was lost (synthetic out-and-back 1 and figure8
+    #: 5: 19x and 29x, their maps collapsed; loop 2 and loop 6, healthy until the loss: 3.1x and
+    #: 2.4x). Then the new map keeps its initialisation's scale.
+    segment_link_max_scale_change: float = 5.0
     #: Odometry sigmas for keyframes that come without a covariance (e.g. the replay frontend):
     #: rotation (rad), translation (fraction of the step length) and log-scale.
     default_rotation_sigma: float = 0.005
@@ -132,6 +148,16 @@ class LoopClosingConfig:
             raise ConfigError(f"loop_closing: settle_keyframes must be >= 0, got {self.settle_keyframes}")
         if not self.verify_timeout_s > 0:
             raise ConfigError(f"loop_closing: verify_timeout_s must be positive, got {self.verify_timeout_s}")
+        if not self.segment_link_max_scale_change > 1:
+            raise ConfigError(
+                "loop_closing: segment_link_max_scale_change must be > 1, got "
+                f"{self.segment_link_max_scale_change}"
+            )
+        if not self.segment_link_speed_window_s >= 0:
+            raise ConfigError(
+                "loop_closing: segment_link_speed_window_s must be >= 0 (0 links segments by identity), "
+                f"got {self.segment_link_speed_window_s}"
+            )
         if self.bridge_support < 1 or not 0.0 < self.bridge_confidence < 1.0:
             raise ConfigError("loop_closing: bridge_support must be >= 1 and bridge_confidence in (0, 1)")
 
@@ -410,9 +436,15 @@ class LoopClosing:
         self._unsettled.append(keyframe)
         self._link_frames(keyframe)
         self._newest_received[keyframe.segment] = keyframe
-        while len(self._unsettled) > self.settle_keyframes:
+        while self._unsettled and len(self._unsettled) > self._settle_count(self._unsettled[0]):
             records += self._add_keyframe(self._unsettled.pop(0))
         return records
+
+    def _settle_count(self, keyframe: Keyframe) -> int:
+        """Newer keyframes ``keyframe`` waits for: ``settle_keyframes``, and at least one when it
+        starts a new map segment (the link to the old segment needs the new one's speed)."""
+        restarts = self._previous is not None and keyframe.segment != self._previous.segment
+        return max(self.settle_keyframes, int(restarts))
 
     def _add_keyframe(self, keyframe: Keyframe) -> list[LoopRecord]:
         start = time.perf_counter()
@@ -422,7 +454,7 @@ class LoopClosing:
             step, covariance = keyframe.pose.copy(), _sigma_covariance(1e-3, 1e-3, 1e-3)
         elif previous.segment != keyframe.segment:
             c = self.config
-            step = np.eye(4)
+            step = self._segment_link(previous, keyframe)
             covariance = _sigma_covariance(
                 c.segment_link_rotation_sigma,
                 c.segment_link_translation_sigma,
@@ -455,6 +487,43 @@ class LoopClosing:
             return []
         keyframe = self._with_objects(keyframe)
         return self._close_loops(keyframe)
+
+    def _segment_link(self, previous: Keyframe, first: Keyframe) -> np.ndarray:
+        """Sim(3) step from the old segment's last keyframe to the new segment's first at constant
+        velocity (module docstring); identity when either segment has no speed to go by."""
+        window = self.config.segment_link_speed_window_s
+        old = [
+            (k.timestamp, self._odometry_pose[k.id][:3, 3])
+            for k in self._keyframes.values()
+            if k.segment == previous.segment and k.timestamp >= previous.timestamp - window
+        ]
+        new = [
+            (k.timestamp, k.pose[:3, 3])
+            for k in [first, *self._unsettled]
+            if k.segment == first.segment and k.timestamp <= first.timestamp + window
+        ]
+        old_velocity, new_velocity = _recent_velocity(old), _recent_velocity(new)
+        if window <= 0 or old_velocity is None or new_velocity is None:
+            return np.eye(4)
+        old_speed, new_speed = old_velocity[0], new_velocity[0]
+        previous_pose = self._odometry_pose[previous.id]
+        target = previous_pose.copy()
+        # Keep the orientation, move on at the old velocity, and take the new map's units to the old
+        # speed (the new keyframe's own scale stays as its later steps assume).
+        rotation = previous_pose[:3, :3] / _linear_scale(previous_pose)
+        scale = old_speed / new_speed * _linear_scale(first.pose)
+        change = scale / _linear_scale(previous_pose)  # against the identity link
+        log.info(
+            "segment %d -> %d: speeds %.4g and %.4g units/s, scale %.3g x the identity link's",
+            previous.segment, first.segment, old_speed, new_speed, change,
+        )  # fmt: skip
+        if abs(np.log(change)) > np.log(self.config.segment_link_max_scale_change):
+            # One of the two maps' scales ran away (a collapsing map is what loses tracking): the
+            # new map's own initialisation, tied to the scene's depth, is the better unit.
+            return np.eye(4)
+        target[:3, :3] = scale * rotation
+        target[:3, 3] += old_velocity[1] * old_speed * (first.timestamp - previous.timestamp)
+        return np.linalg.inv(previous_pose) @ target
 
     def _floor(self, keyframe: Keyframe) -> np.ndarray:
         c = self.config
@@ -732,3 +801,26 @@ class LoopClosing:
             pose = reposed[index] if index in reposed else posed.pose(anchors)
             poses.append((index, posed.timestamp, pose))
         return poses
+
+
+def _recent_velocity(track: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray] | None:
+    """Median speed (units/s) of consecutive (timestamp, position) pairs and the unit direction from
+    the first to the last position; None with fewer than two positions or no motion."""
+    track = sorted(track, key=lambda item: item[0])
+    times = np.array([t for t, _ in track])
+    positions = np.array([p for _, p in track])
+    if len(track) < 2 or not times[-1] > times[0]:
+        return None
+    gaps = np.diff(times)
+    moving = gaps > 0
+    speeds = np.linalg.norm(np.diff(positions, axis=0), axis=1)[moving] / gaps[moving]
+    displacement = positions[-1] - positions[0]
+    length = float(np.linalg.norm(displacement))
+    speed = float(np.median(speeds))
+    if not (speed > 0 and length > 0):
+        return None
+    return speed, displacement / length
+
+
+def _linear_scale(pose: np.ndarray) -> float:
+    return float(np.cbrt(np.linalg.det(pose[:3, :3])))
