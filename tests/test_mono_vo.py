@@ -28,7 +28,8 @@ from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotati
 from frontends.mono_vo.frontend import covariance_inflation, triangulation_partners
 from frontends.mono_vo.geometry import invert, relative_centre_sigma, transform
 from frontends.mono_vo.initializer import Initializer
-from frontends.mono_vo.tracker import PoseEstimate
+from frontends.mono_vo.map import KeyframeState, SegmentMap
+from frontends.mono_vo.tracker import PoseEstimate, Tracker
 from frontends.synth import SynthConfig
 from frontends.synth.render import SceneRenderer
 from frontends.types import CameraIntrinsics, Frame
@@ -634,3 +635,66 @@ def test_relative_centre_sigma_is_the_pose_covariance_and_grows_in_a_strip() -> 
     )
     assert ratio > 3
     assert relative_centre_sigma(K, T_cw, spread[:2], sigmas[:2]) == float("inf")
+
+
+def _tracking_problem(seed: int) -> tuple[Tracker, SegmentMap, Features, np.ndarray]:
+    """A keyframe at the origin that maps 300 points 2-3 m ahead, and the next frame, at ``true``
+    (T_cw), seeing them with 0.5 px noise and the same descriptors."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    points_w = np.column_stack([rng.uniform(-1.5, 1.5, 300), rng.uniform(-1, 1, 300), rng.uniform(2, 3, 300)])
+    descriptors = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+
+    def seen_from(T_cw: np.ndarray, noise: float) -> Features:
+        camera = transform(T_cw, points_w)
+        pixels = camera[:, :2] / camera[:, 2:] * 525.0 + [319.5, 239.5] + rng.normal(0, noise, (300, 2))
+        return Features(pixels.astype(np.float32), pixels, descriptors, np.zeros(300, int), np.zeros(300))
+
+    octave_sigma = 1.2 ** np.arange(8)
+    segment_map = SegmentMap(0, octave_sigma)
+    ids = segment_map.points.add(points_w, 0)
+    keyframe = KeyframeState(0, 0, 0.0, np.eye(4), seen_from(np.eye(4), 0.0), np.full(300, -1), None)  # type: ignore[arg-type]
+    segment_map.keyframes.append(keyframe)
+    segment_map.observe(keyframe, np.arange(300), ids)
+    true = np.eye(4)
+    true[:3, :3] = Rotation.from_euler("y", 3, degrees=True).as_matrix()
+    true[:3, 3] = [0.05, 0.0, 0.02]
+    config = MonoVoConfig()
+    tracker = Tracker(config.tracking, config.relocalisation, K, octave_sigma, (640, 480), 1.0, 0)
+    return tracker, segment_map, seen_from(true, 0.5), true
+
+
+def _rotation_error_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(A[:3, :3].T @ B[:3, :3]).magnitude()))
+
+
+def test_tracking_keeps_the_motion_models_pose_when_ransac_lands_in_a_worse_basin(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """RANSAC's pose and the refined prediction each gather their own matches; more matches win."""
+    tracker, segment_map, features, true = _tracking_problem(0)
+    wrong = true.copy()
+    wrong[:3, :3] = Rotation.from_euler("y", 2.5, degrees=True).as_matrix() @ true[:3, :3]
+    monkeypatch.setattr(Tracker, "_pnp_ransac", lambda self, *args: wrong)  # a minimal sample gone astray
+    near_truth = true.copy()
+    near_truth[:3, 3] += [0.01, -0.01, 0.0]
+    tree = cKDTree(features.points)
+    estimate = tracker.track(segment_map, features, tree, near_truth, 1)
+    assert estimate is not None and _rotation_error_deg(estimate.T_cw, true) < 0.3
+    assert len(estimate.keypoint_idx) > 250
+    # A prediction far off (a jolt) finds too few matches to refine: RANSAC's pose stands.
+    far = true.copy()
+    far[:3, 3] += [0.3, 0.0, 0.0]
+    estimate = tracker.track(segment_map, features, tree, far, 2)
+    assert estimate is None or _rotation_error_deg(estimate.T_cw, wrong) < 1e-9
+
+
+def test_tracking_with_a_sound_ransac_pose_is_unchanged_by_a_poor_prediction() -> None:
+    tracker, segment_map, features, true = _tracking_problem(1)
+    tree = cKDTree(features.points)
+    exact = tracker.track(segment_map, features, tree, true, 1)
+    assert exact is not None and _rotation_error_deg(exact.T_cw, true) < 0.1
+    rough = true.copy()
+    rough[:3, :3] = Rotation.from_euler("y", 0.3, degrees=True).as_matrix() @ true[:3, :3]
+    estimate = tracker.track(segment_map, features, tree, rough, 2)
+    assert estimate is not None and _rotation_error_deg(estimate.T_cw, true) < 0.1
