@@ -216,9 +216,10 @@ def test_new_points_are_observed_by_earlier_keyframes(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
     """The neighbour search records a new keyframe's points in the earlier keyframes that see them:
-    points are seen by more keyframes (their depths rest on wider baselines) and more of them are
-    confirmed before culling (measured, same keyframe rule: 3.9 -> 4.8 keyframes per point, 1124 ->
-    1602 points alive after 80 frames)."""
+    points are seen by more keyframes, so their depths rest on wider baselines (measured, same
+    keyframe rule, 80 frames: 3.6 -> 4.8 keyframes per point). It was also what kept more points
+    alive (1124 -> 1602) until tracking tried two starting poses per frame; since then the
+    default keeps 1679 and the search 1582, so only the observations are asserted."""
     camera, frames = loop_frames
 
     def observations_and_points(overrides: list[str]) -> tuple[float, int]:
@@ -229,7 +230,7 @@ def test_new_points_are_observed_by_earlier_keyframes(
 
     without = observations_and_points([f for f in NEIGHBOUR_SEARCH if "search_neighbours" not in f])
     searched = observations_and_points(NEIGHBOUR_SEARCH)
-    assert searched[0] > 1.15 * without[0] and searched[1] > 1.25 * without[1], (without, searched)
+    assert searched[0] > 1.15 * without[0], (without, searched)
 
 
 def test_projection_matching_respects_scale_and_rotation() -> None:
@@ -532,12 +533,19 @@ def test_tracked_points_in_a_narrow_strip_make_a_keyframe(
     camera, frames = loop_frames
     only_spread = ["keyframes.tracked_ratio=0", "keyframes.min_tracked_share=0"]
     frontend = create(camera, only_spread)
-    run(frontend, frames[:40])
-    last = frontend.segment_map.keyframes[-1]
-    ids = frontend.segment_map.live_ids(last)
-    observed = np.flatnonzero(ids >= 0)
-    x = last.features.points[observed, 0]
-    assert np.ptp(x) > 0.5 * camera.width
+    # Track until the newest keyframe sees the map across more than half the view.
+    for frame in frames[:80]:
+        frontend.track(frame)
+        if frontend.mode != "tracking":
+            continue
+        last = frontend.segment_map.keyframes[-1]
+        ids = frontend.segment_map.live_ids(last)
+        observed = np.flatnonzero(ids >= 0)
+        x = last.features.points[observed, 0]
+        if np.ptp(x) > 0.55 * camera.width:
+            break
+    else:
+        pytest.fail("no keyframe saw the map across half the view in 80 frames")
 
     def needs_keyframe(keypoints: np.ndarray, after_s: float) -> bool:
         frame = dataclasses.replace(frames[0], timestamp=last.timestamp + after_s)
