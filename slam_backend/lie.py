@@ -27,10 +27,14 @@ Mode = Literal["sim3", "se3", "se2"]
 MODES: tuple[Mode, ...] = ("sim3", "se3", "se2")
 
 
+def similarity_scale(matrix: np.ndarray) -> float:
+    """The scale of a 4x4 Sim(3) matrix (its linear part is scale x rotation)."""
+    return float(np.cbrt(np.linalg.det(matrix[:3, :3])))
+
+
 def _sim3_from_matrix(matrix: np.ndarray) -> Any:
-    scaled_rotation = matrix[:3, :3]
-    scale = float(np.cbrt(np.linalg.det(scaled_rotation)))
-    rotation = gtsam.Rot3(scaled_rotation / scale)
+    scale = similarity_scale(matrix)
+    rotation = gtsam.Rot3(matrix[:3, :3] / scale)
     return gtsam.Similarity3(rotation, matrix[:3, 3] / scale, scale)
 
 
@@ -146,6 +150,5 @@ def as_4x4(matrix: np.ndarray) -> np.ndarray:
         lifted[:2, 3] = matrix[:2, 2]
         return lifted
     pose = matrix.copy()
-    scale = float(np.cbrt(np.linalg.det(pose[:3, :3])))
-    pose[:3, :3] /= scale
+    pose[:3, :3] /= similarity_scale(pose)
     return pose

@@ -73,7 +73,7 @@ from slam_backend.global_ba import (
     global_bundle_adjustment,
     repose_frame,
 )
-from slam_backend.lie import as_4x4, pose_group
+from slam_backend.lie import as_4x4, pose_group, similarity_scale
 from slam_backend.pcm import LoopMeasurement, OdometryChain, PairwiseConsistency
 from slam_backend.posegraph import LoopDecision, PoseGraphBackend
 from slam_backend.verify import Verification, Verifier, colmap_camera
@@ -492,6 +492,8 @@ class LoopClosing:
         """Sim(3) step from the old segment's last keyframe to the new segment's first at constant
         velocity (module docstring); identity when either segment has no speed to go by."""
         window = self.config.segment_link_speed_window_s
+        if window <= 0:
+            return np.eye(4)
         old = [
             (k.timestamp, self._odometry_pose[k.id][:3, 3])
             for k in self._keyframes.values()
@@ -503,16 +505,14 @@ class LoopClosing:
             if k.segment == first.segment and k.timestamp <= first.timestamp + window
         ]
         old_velocity, new_velocity = _recent_velocity(old), _recent_velocity(new)
-        if window <= 0 or old_velocity is None or new_velocity is None:
+        if old_velocity is None or new_velocity is None:
             return np.eye(4)
         old_speed, new_speed = old_velocity[0], new_velocity[0]
         previous_pose = self._odometry_pose[previous.id]
-        target = previous_pose.copy()
         # Keep the orientation, move on at the old velocity, and take the new map's units to the old
         # speed (the new keyframe's own scale stays as its later steps assume).
-        rotation = previous_pose[:3, :3] / _linear_scale(previous_pose)
-        scale = old_speed / new_speed * _linear_scale(first.pose)
-        change = scale / _linear_scale(previous_pose)  # against the identity link
+        scale = old_speed / new_speed * similarity_scale(first.pose)
+        change = scale / similarity_scale(previous_pose)  # against the identity link
         log.info(
             "segment %d -> %d: speeds %.4g and %.4g units/s, scale %.3g x the identity link's",
             previous.segment, first.segment, old_speed, new_speed, change,
@@ -521,7 +521,8 @@ class LoopClosing:
             # One of the two maps' scales ran away (a collapsing map is what loses tracking): the
             # new map's own initialisation, tied to the scene's depth, is the better unit.
             return np.eye(4)
-        target[:3, :3] = scale * rotation
+        target = as_4x4(previous_pose)
+        target[:3, :3] *= scale
         target[:3, 3] += old_velocity[1] * old_speed * (first.timestamp - previous.timestamp)
         return np.linalg.inv(previous_pose) @ target
 
@@ -820,7 +821,3 @@ def _recent_velocity(track: list[tuple[float, np.ndarray]]) -> tuple[float, np.n
     if not (speed > 0 and length > 0):
         return None
     return speed, displacement / length
-
-
-def _linear_scale(pose: np.ndarray) -> float:
-    return float(np.cbrt(np.linalg.det(pose[:3, :3])))
