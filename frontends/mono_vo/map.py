@@ -146,8 +146,9 @@ class SegmentMap:
         keyframe.point_ids[keypoint_idx] = -1
 
     def cull(self, current_keyframe_id: int, min_found_ratio: float = 0.25) -> int:
-        """ORB-SLAM's culling of recent points: rarely matched when visible, or seen by <= 2 keyframes
-        two keyframes after their creation. Returns how many points died."""
+        """ORB-SLAM's culling rules: rarely matched when visible (here for points of any age, where
+        ORB-SLAM checks only recent ones; limiting it to recent points measured neutral, README), or
+        seen by <= 2 keyframes two keyframes after their creation. Returns how many points died."""
         p = self.points
         age = current_keyframe_id - p.first_keyframe
         rarely_found = (p.visible >= 10) & (p.found < min_found_ratio * p.visible)
