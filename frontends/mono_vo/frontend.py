@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
-from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
+from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, hamming, octave_sigmas
 from frontends.mono_vo.geometry import invert, linear_map, relative_centre_sigma, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
@@ -333,6 +333,7 @@ class MonoVo:
                 self.config.tracking.inlier_threshold, self.triangulation_radius,
             )  # fmt: skip
         self._observe_in_neighbours(keyframe)
+        self._fuse_duplicates(keyframe)
         self._bundle_adjust()
         self.segment_map.cull(keyframe.id)
         keyframe.output.odometry_covariance = self._odometry_covariance(previous, keyframe)
@@ -363,6 +364,29 @@ class MonoVo:
                 self.segment_map, neighbour.features, keypoint_idx, point_ids, neighbour.T_cw
             )
             self.segment_map.observe(neighbour, keypoint_idx[fits], point_ids[fits], newest=False)
+
+    def _fuse_duplicates(self, keyframe: KeyframeState) -> None:
+        """Merge local-map points the new keyframe sees at a keypoint that holds another point."""
+        s = self.config.keyframes
+        if s.fuse_max_hamming <= 0:
+            return
+        own = self.segment_map.live_ids(keyframe)
+        local = self.segment_map.local_point_ids(self.config.tracking.local_keyframes)
+        candidates = local[~np.isin(local, own)]
+        if len(candidates) == 0:
+            return
+        features = keyframe.features
+        keypoint_idx, point_ids = self.tracker.search_by_projection(
+            self.segment_map, candidates, features, cKDTree(features.points), keyframe.T_cw, s.search_radius
+        )
+        held = own[keypoint_idx]
+        occupied = held >= 0
+        keypoint_idx, point_ids, held = keypoint_idx[occupied], point_ids[occupied], held[occupied]
+        close = hamming(self.segment_map.points.descriptors[point_ids], features.descriptors[keypoint_idx])
+        same = (close <= s.fuse_max_hamming) & self.tracker.fits(
+            self.segment_map, features, keypoint_idx, point_ids, keyframe.T_cw
+        )
+        self.segment_map.fuse(held[same], point_ids[same])
 
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate

@@ -145,6 +145,50 @@ class SegmentMap:
         np.subtract.at(self.points.observations, ids, 1)
         keyframe.point_ids[keypoint_idx] = -1
 
+    def fuse(self, first: np.ndarray, second: np.ndarray) -> int:
+        """Merge pairs of alive points that are the same scene point (ORB-SLAM's Fuse): the one
+        with more observations (the older on a tie) takes over the other's observations, its
+        visible/found counts and a share of its mean viewing direction; the other dies. A keyframe
+        that observed both keeps the survivor's own observation. Returns how many points died."""
+        p = self.points
+        valid = (first != second) & p.alive[first] & p.alive[second]
+        first, second = first[valid], second[valid]
+        if len(first) == 0:
+            return 0
+        first_wins = (p.observations[first] > p.observations[second]) | (
+            (p.observations[first] == p.observations[second]) & (first < second)
+        )
+        remap = np.arange(len(p))
+        remap[np.where(first_wins, second, first)] = np.where(first_wins, first, second)
+        # Chains (a -> b, b -> c) follow to their end; every step goes up one total order, so none loops.
+        while not np.array_equal(remap[remap], remap):
+            remap = remap[remap]
+        dropped = np.flatnonzero(remap != np.arange(len(p)))
+        kept = remap[dropped]
+        weight_kept, weight_dropped = p.observations[kept, None], p.observations[dropped, None]
+        normal = p.normals[kept] * weight_kept + p.normals[dropped] * weight_dropped
+        p.normals[kept] = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
+        for counter in (p.observations, p.visible, p.found):
+            np.add.at(counter, kept, counter[dropped])
+        p.observations[dropped] = 0
+        p.alive[dropped] = False
+        for kf in self.keyframes:
+            ids = kf.point_ids
+            moved = np.flatnonzero(ids >= 0)
+            moved = moved[remap[ids[moved]] != ids[moved]]
+            if len(moved) == 0:
+                continue
+            ids[moved] = remap[ids[moved]]
+            # Where the keyframe now holds a point twice, the observation that was already its own stays.
+            own_first = np.ones(len(ids), bool)
+            own_first[moved] = False
+            order = np.lexsort((~own_first, ids))
+            sorted_ids = ids[order]
+            repeat = order[1:][(sorted_ids[1:] == sorted_ids[:-1]) & (sorted_ids[1:] >= 0)]
+            np.subtract.at(p.observations, ids[repeat], 1)
+            ids[repeat] = -1
+        return len(dropped)
+
     def cull(self, current_keyframe_id: int, min_found_ratio: float = 0.25) -> int:
         """ORB-SLAM's culling rules: rarely matched when visible (here for points of any age, where
         ORB-SLAM checks only recent ones; limiting it to recent points measured neutral, README), or
