@@ -795,3 +795,12 @@ def test_fusing_duplicate_points_moves_their_observations_to_the_better_observed
     assert segment_map.fuse(np.array([2, 3]), np.array([1, 0])) == 1
     assert keyframes[0].point_ids.tolist() == [0, 1, -1, -1, -1]
     assert points.observations.tolist() == [3, 2, 0, 0]
+    # One call with a chain (4 joins 5, 5 joins 6, by observations 1 < 2 < 3): all end on 6, once each.
+    chain = segment_map.points.add(np.array([[2, 0, 2.0], [2, 0, 2.0], [2, 0, 2.0]]), 2)
+    segment_map.observe(keyframes[0], np.array([2, 3]), chain[[0, 2]])
+    segment_map.observe(keyframes[1], np.array([2, 3]), chain[[1, 2]])
+    segment_map.observe(keyframes[2], np.array([1, 2]), chain[[1, 2]])
+    assert segment_map.fuse(chain[[0, 1]], chain[[1, 2]]) == 2
+    for kf in keyframes:
+        assert (kf.point_ids == chain[2]).sum() == 1 and not np.isin(chain[:2], kf.point_ids).any()
+    assert points.observations[chain].tolist() == [0, 0, 3]
