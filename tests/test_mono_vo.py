@@ -24,7 +24,7 @@ from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, DatasetError
 from frontends.mono_vo import MonoVoConfig, create
 from frontends.mono_vo.config import KeyframeSettings
-from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, hamming, match_in_radius
+from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.frontend import MonoVo, covariance_inflation, triangulation_partners
 from frontends.mono_vo.geometry import invert, relative_centre_sigma, transform
 from frontends.mono_vo.initializer import Initializer
@@ -234,24 +234,6 @@ def test_new_points_are_observed_by_earlier_keyframes(
     assert searched[0] > 1.15 * without[0], (without, searched)
 
 
-def _duplicates_in_newest_keyframe(frontend: Frontend) -> int:
-    """Local-map points that the newest keyframe sees at a keypoint holding another point, with
-    a descriptor within 50 bits of it: the pairs ``keyframes.fuse_max_hamming`` merges."""
-    assert isinstance(frontend, MonoVo)
-    segment = frontend.segment_map
-    keyframe = segment.keyframes[-1]
-    own = segment.live_ids(keyframe)
-    local = segment.local_point_ids(frontend.config.tracking.local_keyframes)
-    keypoint_idx, point_ids = frontend.tracker.search_by_projection(
-        segment, local[~np.isin(local, own)], keyframe.features, cKDTree(keyframe.features.points),
-        keyframe.T_cw, frontend.config.keyframes.search_radius,
-    )  # fmt: skip
-    occupied = own[keypoint_idx] >= 0
-    keypoint_idx, point_ids = keypoint_idx[occupied], point_ids[occupied]
-    close = hamming(segment.points.descriptors[point_ids], keyframe.features.descriptors[keypoint_idx]) <= 50
-    return int(close.sum())
-
-
 def test_duplicate_points_are_fused(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """A scene point that tracking missed is triangulated again by the next keyframe; the new
     keyframe merges such copies (measured, 80 frames of the 320x240 loop: 19 -> 2 copies in the
@@ -261,7 +243,9 @@ def test_duplicate_points_are_fused(loop_frames: tuple[CameraIntrinsics, list[Fr
     def duplicates_and_points(overrides: list[str]) -> tuple[int, int]:
         frontend = create(camera, overrides)
         run(frontend, frames[:80])
-        return _duplicates_in_newest_keyframe(frontend), int(frontend.segment_map.points.alive.sum())
+        assert isinstance(frontend, MonoVo)
+        copies = frontend.duplicate_pairs(frontend.segment_map.keyframes[-1], 50)[0]
+        return len(copies), int(frontend.segment_map.points.alive.sum())
 
     apart = duplicates_and_points(["keyframes.fuse_max_hamming=0"])
     fused = duplicates_and_points([])

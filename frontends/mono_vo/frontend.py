@@ -367,26 +367,33 @@ class MonoVo:
 
     def _fuse_duplicates(self, keyframe: KeyframeState) -> None:
         """Merge local-map points the new keyframe sees at a keypoint that holds another point."""
-        s = self.config.keyframes
-        if s.fuse_max_hamming <= 0:
-            return
+        max_hamming = self.config.keyframes.fuse_max_hamming
+        if max_hamming > 0:
+            self.segment_map.fuse(*self.duplicate_pairs(keyframe, max_hamming))
+
+    def duplicate_pairs(self, keyframe: KeyframeState, max_hamming: int) -> tuple[np.ndarray, np.ndarray]:
+        """(point the keyframe holds, local-map point it does not hold) pairs that are one scene
+        point: the second projects within ``search_radius`` px of the first's keypoint, fits there
+        and its descriptor is within ``max_hamming`` bits of the keypoint's."""
+        none = np.zeros(0, np.int64)
         own = self.segment_map.live_ids(keyframe)
         local = self.segment_map.local_point_ids(self.config.tracking.local_keyframes)
         candidates = local[~np.isin(local, own)]
         if len(candidates) == 0:
-            return
+            return none, none
         features = keyframe.features
         keypoint_idx, point_ids = self.tracker.search_by_projection(
-            self.segment_map, candidates, features, cKDTree(features.points), keyframe.T_cw, s.search_radius
-        )
+            self.segment_map, candidates, features, cKDTree(features.points), keyframe.T_cw,
+            self.config.keyframes.search_radius,
+        )  # fmt: skip
         held = own[keypoint_idx]
         occupied = held >= 0
         keypoint_idx, point_ids, held = keypoint_idx[occupied], point_ids[occupied], held[occupied]
         close = hamming(self.segment_map.points.descriptors[point_ids], features.descriptors[keypoint_idx])
-        same = (close <= s.fuse_max_hamming) & self.tracker.fits(
+        same = (close <= max_hamming) & self.tracker.fits(
             self.segment_map, features, keypoint_idx, point_ids, keyframe.T_cw
         )
-        self.segment_map.fuse(held[same], point_ids[same])
+        return held[same], point_ids[same]
 
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate
