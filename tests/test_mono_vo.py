@@ -175,6 +175,7 @@ def test_odometry_covariance_grows_when_keyframes_share_few_points(
         "keyframes.max_covariance_inflation=0.5",
         "keyframes.search_neighbours=-1",
         "keyframes.search_radius=0",
+        "keyframes.fuse_max_hamming=-1",
     ],
 )
 def test_bad_keyframe_settings_are_config_errors(override: str) -> None:

@@ -189,6 +189,8 @@ class KeyframeSettings:
             raise ConfigError(
                 "keyframes: search_neighbours must be >= 0 (0 turns the search off) and search_radius > 0"
             )
+        if self.fuse_max_hamming < 0:
+            raise ConfigError("keyframes: fuse_max_hamming must be >= 0 (0 turns the fusion off)")
         if self.covariance_reference_points < 1 or self.covariance_exponent < 0:
             raise ConfigError(
                 "keyframes: covariance_reference_points must be >= 1 and covariance_exponent >= 0"

@@ -368,7 +368,7 @@ class MonoVo:
     def _fuse_duplicates(self, keyframe: KeyframeState) -> None:
         """Merge local-map points the new keyframe sees at a keypoint that holds another point."""
         max_hamming = self.config.keyframes.fuse_max_hamming
-        if max_hamming > 0:
+        if max_hamming:
             self.segment_map.fuse(*self.duplicate_pairs(keyframe, max_hamming))
 
     def duplicate_pairs(self, keyframe: KeyframeState, max_hamming: int) -> tuple[np.ndarray, np.ndarray]:
