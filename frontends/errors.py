@@ -23,6 +23,11 @@ class InputFileError(SymbioError):
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
 
+    def __reduce__(self) -> tuple[type[InputFileError], tuple[str, str, int | None]]:
+        # Benchmarks run scenes in worker processes; the default pickling passes only the formatted
+        # message back to __init__, which then fails and the pool reports a broken process instead.
+        return type(self), (self.path, self.reason, self.line)
+
 
 class DatasetError(InputFileError):
     """A dataset folder or one of its index files is malformed."""

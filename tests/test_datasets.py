@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from frontends.datasets import detect_format, open_dataset
 from frontends.datasets.calib import write_intrinsics
 from frontends.datasets.folder import VideoDataset
 from frontends.datasets.tum import FREIBURG_INTRINSICS
-from frontends.errors import CalibrationError, DatasetError, TrajectoryFileError
+from frontends.errors import CalibrationError, DatasetError, InputFileError, TrajectoryFileError
 from frontends.types import CameraIntrinsics
 
 W, H = 64, 48
@@ -618,3 +619,13 @@ def test_shared_tum_clip(shared: Path) -> None:
     assert len(dataset) == 17
     assert (dataset.camera.fx, dataset.camera.fy) == (535.4, 539.2)
     assert not dataset.has_groundtruth
+
+
+@pytest.mark.parametrize("error_type", [InputFileError, DatasetError, TrajectoryFileError])
+def test_input_errors_survive_pickling_across_worker_processes(error_type: type[InputFileError]) -> None:
+    # The benchmarks run scenes in process pools; an error that cannot be rebuilt there surfaces as
+    # "a process in the pool terminated abruptly" instead of the file and line.
+    error = error_type("scene/gt_loop_pairs.txt", "frame index out of range 0..199: [407, 0]", line=2)
+    copy = pickle.loads(pickle.dumps(error))
+    assert type(copy) is error_type
+    assert (copy.path, copy.line, copy.reason, str(copy)) == (error.path, 2, error.reason, str(error))
