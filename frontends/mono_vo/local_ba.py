@@ -7,7 +7,8 @@ stay where the earlier keyframes put them. At the start of a segment there are n
 then the first keyframe is fixed and the second keeps only its distance from the first (a range
 factor): that fixes the gauge's seventh degree of freedom, the map's scale, and nothing more. The
 direction of the first baseline stays free, so later keyframes can correct an initialisation whose
-translation was poorly conditioned (a short baseline during a rotation).
+translation was poorly conditioned (a short baseline during a rotation). With
+``start_orientation_prior`` the second keyframe also keeps its orientation (see its setting).
 
 Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels (points keyed by their id)
 with a Huber kernel; the pixel sigma grows with the keypoint's pyramid level. Levenberg-Marquardt
@@ -30,6 +31,8 @@ from frontends.mono_vo.geometry import invert, project
 from frontends.mono_vo.map import KeyframeState, SegmentMap
 
 _FIXED_SIGMA = 1e-6
+#: Sigma of a prior's unconstrained components (map units): no pull at the map's scale.
+_FREE_SIGMA = 1e3
 
 
 @dataclass(frozen=True)
@@ -82,7 +85,7 @@ def local_bundle_adjustment(
                 np.ascontiguousarray(kf.features.points[keypoint_idx[chosen]].T), noise_by_octave[octave],
                 calibration,
             )  # fmt: skip
-    _add_gauge_priors(graph, segment_map, window, fixed)
+    _add_gauge_priors(graph, window, fixed, settings.start_orientation_prior)
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(settings.iterations)
@@ -140,29 +143,33 @@ def _observations(
 
 def _add_gauge_priors(
     graph: gtsam.NonlinearFactorGraph,
-    segment_map: SegmentMap,
     window: list[KeyframeState],
     fixed: list[KeyframeState],
+    start_orientation_prior: bool,
 ) -> None:
     tight = gtsam.noiseModel.Isotropic.Sigma(6, _FIXED_SIGMA)
     for kf in fixed:
         graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)), tight))
     if fixed:
         return
-    # Segment start: fix the first keyframe, and the distance (the map's scale) of the second.
+    # Segment start: fix the first keyframe and the distance (the map's scale) of the second; the
+    # direction of the first baseline stays free.
     first, *rest = window
     graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first.id), gtsam.Pose3(invert(first.T_cw)), tight))
     if rest:
         second = rest[0]
+        first_key, second_key = gtsam.symbol("x", first.id), gtsam.symbol("x", second.id)
         baseline = float(np.linalg.norm(invert(second.T_cw)[:3, 3] - invert(first.T_cw)[:3, 3]))
         graph.add(
             gtsam.RangeFactorPose3(
-                gtsam.symbol("x", first.id),
-                gtsam.symbol("x", second.id),
-                baseline,
-                gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA),
+                first_key, second_key, baseline, gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA)
             )
         )
+        if not start_orientation_prior:
+            return
+        # Pose3 tangent order is (rotation, translation): a free translation, a fixed rotation.
+        orientation_only = gtsam.noiseModel.Diagonal.Sigmas(np.array([_FIXED_SIGMA] * 3 + [_FREE_SIGMA] * 3))
+        graph.add(gtsam.PriorFactorPose3(second_key, gtsam.Pose3(invert(second.T_cw)), orientation_only))
 
 
 def _remove_outliers(
