@@ -52,13 +52,14 @@ def synthetic_frames(trajectory: str, seed: int, frames: int) -> tuple[CameraInt
 
 
 def synthetic_scene(
-    trajectory: str, seed: int, frames: int
+    trajectory: str, seed: int, frames: int, rendered_frames: int | None = None
 ) -> tuple[CameraIntrinsics, list[Frame], list[list[tuple[int, int, int, int]]]]:
-    """``synthetic_frames`` and, per frame, the boxes of the movable objects (walking people)."""
+    """``synthetic_frames`` and, per frame, the boxes of the movable objects (walking people);
+    only the first ``rendered_frames`` of the ``frames``-long scene, if given."""
     config = SynthConfig(trajectory=trajectory, seed=seed, frames=frames)  # type: ignore[arg-type]
     scene = SceneRenderer(config)
     result, movable = [], []
-    for index in range(frames):
+    for index in range(frames if rendered_frames is None else min(rendered_frames, frames)):
         rendered = scene.frame(index)
         # Grey copies: the renderer reuses its buffers, and 600 colour frames would need 0.5 GB.
         gray = cv2.cvtColor(rendered.image, cv2.COLOR_BGR2GRAY)

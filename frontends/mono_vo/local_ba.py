@@ -165,11 +165,11 @@ def _add_gauge_priors(
                 first_key, second_key, baseline, gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA)
             )
         )
-        if not start_orientation_prior:
-            return
-        # Pose3 tangent order is (rotation, translation): a free translation, a fixed rotation.
-        orientation_only = gtsam.noiseModel.Diagonal.Sigmas(np.array([_FIXED_SIGMA] * 3 + [_FREE_SIGMA] * 3))
-        graph.add(gtsam.PriorFactorPose3(second_key, gtsam.Pose3(invert(second.T_cw)), orientation_only))
+        if start_orientation_prior:
+            # Pose3 tangent order is (rotation, translation): a fixed rotation, a free translation.
+            sigmas = np.array([_FIXED_SIGMA] * 3 + [_FREE_SIGMA] * 3)
+            orientation_only = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+            graph.add(gtsam.PriorFactorPose3(second_key, gtsam.Pose3(invert(second.T_cw)), orientation_only))
 
 
 def _remove_outliers(
