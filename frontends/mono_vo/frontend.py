@@ -17,7 +17,9 @@ the next frame with ``prefetch``); then, by state,
   poses live in a new map frame: they are never spliced into the old one.
 
 A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
-blackout ends in relocalisation if the camera comes back to a known view.
+blackout ends in relocalisation if the camera comes back to a known view. A view of the map's
+newest points in a strip does not count as known: a relocalised pose whose points fix its centre
+``max_sigma_ratio`` times as loosely as the newest keyframe's is refused (``Tracker.relocalise``).
 
 Frames with features that got no pose (lost while relocalisation failed, or seen before the
 initialiser's final reference) are kept, the newest ``backfill_frames`` of them, and once the
@@ -45,7 +47,7 @@ from scipy.spatial import cKDTree
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, hamming, octave_sigmas
-from frontends.mono_vo.geometry import invert, linear_map, relative_centre_sigma, transform
+from frontends.mono_vo.geometry import invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -164,9 +166,7 @@ class MonoVo:
         self.velocity = _fraction_of_motion(second.T_cw @ invert(first.T_cw), 1.0 / steps)
         self.mode = "tracking"
         self.failed_relocalisations = 0
-        first_ids = self.segment_map.live_ids(first)
-        seen = np.flatnonzero(first_ids >= 0)
-        first_sigma = self._centre_sigma(first.T_cw, first.features, seen, first_ids[seen])
+        first_sigma = self._keyframe_centre_sigma(first)
         backfilled = self._track_backwards(first.T_cw, first.frame_index, first_sigma) + self._backfill(
             first, second, first_sigma
         )
@@ -212,7 +212,10 @@ class MonoVo:
         return self._tracked(frame, estimate.T_cw, "tracking", keyframe, _observations(features, estimate))
 
     def _relocalise(self, frame: Frame, features: Features, tree: cKDTree) -> TrackResult:
-        estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index)
+        max_sigma = self.config.relocalisation.max_sigma_ratio * self._keyframe_centre_sigma(
+            self.segment_map.keyframes[-1]
+        )
+        estimate = self.tracker.relocalise(self.segment_map, features, tree, frame.index, max_sigma)
         if estimate is not None:
             log.info("frame %d: relocalised in segment %d", frame.index, self.segment_map.segment)
             self.mode = "tracking"
@@ -259,9 +262,13 @@ class MonoVo:
     def _centre_sigma(
         self, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray, point_ids: np.ndarray
     ) -> float:
-        """``relative_centre_sigma`` of a pose (``T_cw``) from these keypoints and map points."""
-        sigmas = octave_sigmas(self.octave_sigma, features.octaves[keypoint_idx])
-        return relative_centre_sigma(self.K, T_cw, self.segment_map.points.positions[point_ids], sigmas)
+        return self.tracker.centre_sigma(self.segment_map, T_cw, features, keypoint_idx, point_ids)
+
+    def _keyframe_centre_sigma(self, kf: KeyframeState) -> float:
+        """How loosely a keyframe's map points fix its camera centre (``Tracker.centre_sigma``)."""
+        ids = self.segment_map.live_ids(kf)
+        seen = np.flatnonzero(ids >= 0)
+        return self._centre_sigma(kf.T_cw, kf.features, seen, ids[seen])
 
     def _track_late(
         self, index: int, timestamp: float, features: Features, predicted: np.ndarray, reference_sigma: float

@@ -27,7 +27,8 @@ Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
 
 Relocalisation matches the frame's descriptors against the map points of recent keyframes (newest
 first), solves PnP RANSAC, and accepts a pose only if tracking the local map from it then finds
-``min_inliers`` inliers: a pose is never taken from a handful of descriptor matches.
+``min_inliers`` inliers that fix the camera centre well enough (``max_centre_sigma``): a pose is
+never taken from a handful of descriptor matches, nor from points in a strip of the view.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from frontends.mono_vo.geometry import (
     from_rvec,
     invert,
     project,
+    relative_centre_sigma,
     usac_params,
 )
 from frontends.mono_vo.map import SegmentMap
@@ -164,9 +166,25 @@ class Tracker:
         points.found[estimate.point_ids] += 1
         return estimate
 
+    def centre_sigma(
+        self, segment_map: SegmentMap, T_cw: np.ndarray, features: Features, keypoint_idx: np.ndarray,
+        point_ids: np.ndarray,
+    ) -> float:  # fmt: skip
+        """``relative_centre_sigma`` of a pose (``T_cw``) from these keypoints and map points."""
+        sigmas = octave_sigmas(self.octave_sigma, features.octaves[keypoint_idx])
+        return relative_centre_sigma(self.K, T_cw, segment_map.points.positions[point_ids], sigmas)
+
     def relocalise(
-        self, segment_map: SegmentMap, features: Features, tree: cKDTree, frame_index: int
+        self,
+        segment_map: SegmentMap,
+        features: Features,
+        tree: cKDTree,
+        frame_index: int,
+        max_centre_sigma: float,
     ) -> PoseEstimate | None:
+        """The frame's pose from the first anchor keyframe (newest first) whose matches give a PnP
+        pose that tracks the local map with ``min_inliers`` inliers fixing the camera centre to at
+        most ``max_centre_sigma`` (``centre_sigma``)."""
         r = self.relocalisation
         keyframes = segment_map.keyframes
         for position in range(len(keyframes) - 1, max(-1, len(keyframes) - 1 - r.max_keyframes), -1):
@@ -194,7 +212,14 @@ class Tracker:
             ]
             local_ids = np.unique(np.concatenate([segment_map.live_ids(kf) for kf in nearby]))
             estimate = self.track_local_map(segment_map, local_ids[local_ids >= 0], features, tree, T_cw)
-            if estimate is not None and len(estimate.keypoint_idx) >= self.min_reloc_inliers:
+            if (
+                estimate is not None
+                and len(estimate.keypoint_idx) >= self.min_reloc_inliers
+                and self.centre_sigma(
+                    segment_map, estimate.T_cw, features, estimate.keypoint_idx, estimate.point_ids
+                )
+                <= max_centre_sigma
+            ):
                 return estimate
         return None
 
