@@ -6,11 +6,11 @@ starts a new map segment, which loop closing can reconnect. This blacks out ``--
 where the camera really is by then ("on": it has moved on and sees the map's newest points) or
 ``--back`` frames before the blackout began ("back": a view the map knows well), for every
 (trajectory, scene seed, frontend seed). Per case it reports what the first frame posed after the
-blackout is (relocalised / backfilled from a later relocalisation / new segment / none), how far a relocalised camera centre is from the
-truth (the run's segment 0 before the blackout Sim(3)-aligned to ground truth, evo's Umeyama), and
-that alignment's error in % of the path before the blackout: a relocalisation can only be judged
-where the map was right. The summary counts relocalisations, and among those on a right map
-(below ``--map-error`` %) the ones off by more than ``--wrong`` m.
+blackout is (relocalised / backfilled from a later relocalisation / new segment / none), how far a
+relocalised camera centre is from the truth (the run's segment 0 before the blackout Sim(3)-aligned
+to ground truth, evo's Umeyama), and that alignment's error in % of the path before the blackout: a
+relocalisation can only be judged where the map was right. The summary counts relocalisations, and
+among those on a right map (below ``--map-error`` %) the ones off by more than ``--wrong`` m.
 
 Usage: ``python -m eval.bench_relocalisation [--trajectories loop,figure8,out-and-back]
 [--seeds 0-1] [--frontend-seeds 0-2] [--blackouts 40,70,100] [--black 20] [--back 15] [--after 50]
