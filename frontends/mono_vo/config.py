@@ -220,13 +220,13 @@ class BundleAdjustmentSettings:
     #: rotation and sideways translation move the image almost alike and, with the orientation
     #: free, each keyframe pulled the first pair further along that valley (figure8 seed 8: yaw
     #: under-estimated by 10, 20, 25 % per keyframe, the map shrinking 25x in 100 frames). Measured
-    #: (README, "The segment start's orientation"): first 200 frames of the 14 figure8 scenes x 2
-    #: frontend seeds, collapses 8 -> 0; 600-frame masked runs with a restart or collapse 4 -> 4 of
-    #: 42 (seeds 0-6) and 12 -> 8 of 42 (held-out 7-13: figure8 10 -> 2, others collapse mid-run
-    #: instead); but the first 150 frames of the 320x240 loop collapse in 3 of 10 frontend seeds
-    #: (default 1: the map shrinks after the start instead) and the KITTI clip's median ATE over
-    #: frontend seeds 0-11 goes 0.071 -> 0.130 % of the path. So it is opt-in.
-    start_orientation_prior: bool = False
+    #: with the single-anchor range factor (``local_ba``; README, "The segment start's
+    #: orientation"), against False: first 200 frames of the 14 figure8 scenes x 2 frontend seeds,
+    #: collapses 8 -> 1; 600-frame masked runs that restart or collapse 4 -> 2 of 42 (seeds 0-6) and
+    #: 13 -> 7 of 42 (held-out 7-13); first 150 frames of the 320x240 loop x 10 frontend seeds,
+    #: collapses 1 -> 0; but the KITTI clip's median ATE over frontend seeds 0-11 goes 0.071 ->
+    #: 0.105 % of the path (all 12 below 0.3 %).
+    start_orientation_prior: bool = True
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,9 @@ then the first keyframe is fixed and the second keeps only its distance from the
 factor): that fixes the gauge's seventh degree of freedom, the map's scale, and nothing more. The
 direction of the first baseline stays free, so later keyframes can correct an initialisation whose
 translation was poorly conditioned (a short baseline during a rotation). With
-``start_orientation_prior`` the second keyframe also keeps its orientation (see its setting).
+``start_orientation_prior`` (the default) the second keyframe also keeps its orientation (see its
+setting). When the window first slides past the start, a single older keyframe anchors it, which
+leaves the window's scale free: the oldest window keyframe then keeps its distance from that anchor.
 
 Factors are ``GenericProjectionFactorCal3_S2`` on undistorted pixels (points keyed by their id)
 with a Huber kernel; the pixel sigma grows with the keypoint's pyramid level. Levenberg-Marquardt
@@ -150,6 +152,11 @@ def _add_gauge_priors(
     tight = gtsam.noiseModel.Isotropic.Sigma(6, _FIXED_SIGMA)
     for kf in fixed:
         graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", kf.id), gtsam.Pose3(invert(kf.T_cw)), tight))
+    if len(fixed) == 1:
+        # One anchor fixes six of the Sim(3) gauge's seven degrees of freedom: hold the scale too.
+        # Without it the first BA after the start could rescale the window at once (320x240 loop,
+        # start orientation held: the map shrank 5x in one keyframe step in 3 of 10 seeds).
+        _add_range(graph, fixed[0], window[0])
     if fixed:
         return
     # Segment start: fix the first keyframe and the distance (the map's scale) of the second; the
@@ -158,18 +165,20 @@ def _add_gauge_priors(
     graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first.id), gtsam.Pose3(invert(first.T_cw)), tight))
     if rest:
         second = rest[0]
-        first_key, second_key = gtsam.symbol("x", first.id), gtsam.symbol("x", second.id)
-        baseline = float(np.linalg.norm(invert(second.T_cw)[:3, 3] - invert(first.T_cw)[:3, 3]))
-        graph.add(
-            gtsam.RangeFactorPose3(
-                first_key, second_key, baseline, gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA)
-            )
-        )
+        _add_range(graph, first, second)
         if start_orientation_prior:
             # Pose3 tangent order is (rotation, translation): a fixed rotation, a free translation.
             sigmas = np.array([_FIXED_SIGMA] * 3 + [_FREE_SIGMA] * 3)
             orientation_only = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+            second_key = gtsam.symbol("x", second.id)
             graph.add(gtsam.PriorFactorPose3(second_key, gtsam.Pose3(invert(second.T_cw)), orientation_only))
+
+
+def _add_range(graph: gtsam.NonlinearFactorGraph, anchor: KeyframeState, kf: KeyframeState) -> None:
+    """Hold ``kf``'s current distance from ``anchor`` (the map's scale)."""
+    distance = float(np.linalg.norm(invert(kf.T_cw)[:3, 3] - invert(anchor.T_cw)[:3, 3]))
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, _FIXED_SIGMA)
+    graph.add(gtsam.RangeFactorPose3(gtsam.symbol("x", anchor.id), gtsam.symbol("x", kf.id), distance, noise))
 
 
 def _remove_outliers(
