@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from eval.bench_pipeline import run_scene, scene
-from frontends.cli_common import add_json_option, write_json
+from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.errors import ConfigError
 
 DEFAULT_COLLAPSE_M = 0.3
@@ -123,10 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=600)
     parser.add_argument("--jobs", type=int, default=2, help="parallel runs (default 2)")
     parser.add_argument("--work", type=Path, help="scene cache and run outputs (default: a temporary folder)")
-    parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-        help="override a setting as in `symbio run --set` (repeatable)",
-    )  # fmt: skip
+    add_set_option(parser, "override a setting as in `symbio run --set` (repeatable)")
     parser.add_argument("--collapse", type=float, default=DEFAULT_COLLAPSE_M, help="collapse ATE (m)")
     parser.add_argument("--against", type=Path, help="an earlier --json of this benchmark to compare with")
     add_json_option(parser)

@@ -40,7 +40,7 @@ from typing import Any
 from eval.demo import synthetic_components
 from eval.run import build_loop_closing, load_components, run_odometry
 from frontends.base import FRONTENDS
-from frontends.cli_common import add_json_option, write_json
+from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
 from frontends.synth.world import SynthConfig
@@ -83,10 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--frames", type=int, default=600)
     parser.add_argument("--work", type=Path, help="scene cache and run outputs (default: a temporary folder)")
-    parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-        help="override a setting of every run as in `symbio run --set` (repeatable)",
-    )  # fmt: skip
+    add_set_option(parser, "override a setting of every run as in `symbio run --set` (repeatable)")
     add_json_option(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)

@@ -36,7 +36,7 @@ from evo.core.geometry import umeyama_alignment
 from eval.bench_frontend import synthetic_scene
 from eval.bench_odometry import parse_seeds
 from frontends.base import TrackResult, with_lookahead
-from frontends.cli_common import add_json_option, write_json
+from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.errors import ConfigError
 from frontends.mono_vo import create
 from frontends.types import CameraIntrinsics, Frame
@@ -174,10 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--wrong", type=float, default=0.1, help="a wrong relocalisation: off by more (m)")
     parser.add_argument("--jobs", type=int, default=2, help="parallel scenes (default 2)")
-    parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-        help="override a mono-vo setting, e.g. relocalisation.max_sigma_ratio=4 (repeatable)",
-    )  # fmt: skip
+    add_set_option(parser, "override a mono-vo setting, e.g. relocalisation.max_sigma_ratio=4 (repeatable)")
     add_json_option(parser)
     args = parser.parse_args(argv)
     try:

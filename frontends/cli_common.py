@@ -16,6 +16,13 @@ def add_json_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """``--set KEY=VALUE`` (repeatable) into ``args.overrides``."""
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help=help
+    )
+
+
 def write_json(path: str | Path | None, figures: Mapping[str, Any]) -> None:
     """Write a flat JSON object of scalar figures (NaN/inf become null, numpy scalars plain numbers)."""
     if path is None:
