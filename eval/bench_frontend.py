@@ -36,7 +36,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from frontends.base import TrackResult, with_lookahead
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
-from frontends.mono_vo import create
+from frontends.mono_vo import MonoVo, create
 from frontends.mono_vo.features import OrbExtractor
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
@@ -86,6 +86,17 @@ def dataset_frames(path: Path, fmt: str | None) -> tuple[CameraIntrinsics, list[
     return dataset.camera, list(dataset)
 
 
+def track_all(frontend: MonoVo, frames: Sequence[Frame]) -> dict[int, TrackResult]:
+    """Each frame's result, fed as ``symbio run`` feeds them; a frame posed late (backfilled after a
+    relocalisation) has its late result."""
+    results: dict[int, TrackResult] = {}
+    for frame in with_lookahead(frames, frontend):
+        result = frontend.track(frame)
+        results[frame.index] = result
+        results.update((late.frame_index, late) for late in result.backfilled)
+    return results
+
+
 def evaluate(
     camera: CameraIntrinsics,
     frames: Sequence[Frame],
@@ -96,12 +107,8 @@ def evaluate(
     speed, per-stage times, tracking states and ATE."""
     frontend = create(camera, overrides)
     frontend.set_dynamic_objects(dynamic_objects)
-    results: dict[int, TrackResult] = {}
     start = time.perf_counter()
-    for frame in with_lookahead(frames, frontend):
-        result = frontend.track(frame)
-        results[frame.index] = result
-        results.update((late.frame_index, late) for late in result.backfilled)
+    results = track_all(frontend, frames)
     seconds = time.perf_counter() - start
     states = Counter(r.state for r in results.values())
     poses = {i: r.pose for i, r in results.items() if r.pose is not None}

@@ -33,9 +33,8 @@ from typing import Any, Literal
 import numpy as np
 from evo.core.geometry import umeyama_alignment
 
-from eval.bench_frontend import synthetic_scene
+from eval.bench_frontend import synthetic_scene, track_all
 from eval.bench_odometry import parse_seeds
-from frontends.base import TrackResult, with_lookahead
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.errors import ConfigError
 from frontends.mono_vo import create
@@ -89,12 +88,7 @@ def outcome(
     blackout: Blackout,
     overrides: Sequence[str],
 ) -> Outcome:
-    frontend = create(camera, overrides)
-    results: dict[int, TrackResult] = {}
-    for frame in with_lookahead(sequence, frontend):
-        result = frontend.track(frame)
-        results[frame.index] = result
-        results.update((late.frame_index, late) for late in result.backfilled)
+    results = track_all(create(camera, overrides), sequence)
     before = [
         i
         for i in range(blackout.first_black)

@@ -263,9 +263,13 @@ class RelocalisationSettings:
     max_sigma_ratio: float = 3.0
 
     def __post_init__(self) -> None:
-        for key in ("backfill_max_sigma_ratio", "max_sigma_ratio"):
+        hints = {
+            "backfill_max_sigma_ratio": " (relocalisation.backfill_frames=0 turns backfilling off)",
+            "max_sigma_ratio": "",
+        }
+        for key, hint in hints.items():
             if not getattr(self, key) > 0:
-                raise ConfigError(f"relocalisation: {key} must be positive, got {getattr(self, key)}")
+                raise ConfigError(f"relocalisation: {key} must be positive, got {getattr(self, key)}{hint}")
 
 
 @dataclass(frozen=True)
