@@ -33,10 +33,10 @@ import numpy as np
 from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 
-from frontends.base import TrackResult, with_lookahead
+from frontends.base import Frontend, TrackResult, with_lookahead
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
-from frontends.mono_vo import MonoVo, create
+from frontends.mono_vo import create
 from frontends.mono_vo.features import OrbExtractor
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
@@ -86,7 +86,7 @@ def dataset_frames(path: Path, fmt: str | None) -> tuple[CameraIntrinsics, list[
     return dataset.camera, list(dataset)
 
 
-def track_all(frontend: MonoVo, frames: Sequence[Frame]) -> dict[int, TrackResult]:
+def track_all(frontend: Frontend, frames: Sequence[Frame]) -> dict[int, TrackResult]:
     """Each frame's result, fed as ``symbio run`` feeds them; a frame posed late (backfilled after a
     relocalisation) has its late result."""
     results: dict[int, TrackResult] = {}
