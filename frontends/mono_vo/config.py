@@ -104,6 +104,19 @@ class TrackingSettings:
     min_inliers: int = 40
     #: Keyframes whose map points form the local map projected into each frame.
     local_keyframes: int = 10
+    #: The tracked pose keeps the constant-velocity prediction's orientation within
+    #: ``rotation_prior_acceleration`` x dt^2 deg (dt: seconds since the last tracked frame), a
+    #: prior on the angular acceleration (``tracker.refine_with_rotation_prior``): 270 deg/s^2 is
+    #: 0.3 deg at 30 Hz, 2.7 deg at 10 Hz, nothing after a gap. It matters only where the map is
+    #: seen in a strip and rotation trades off against translation. 0: no prior.
+    rotation_prior_acceleration: float = 270.0
+
+    def __post_init__(self) -> None:
+        if self.rotation_prior_acceleration < 0:
+            raise ConfigError(
+                "tracking: rotation_prior_acceleration must be >= 0 (0 turns the prior off), "
+                f"got {self.rotation_prior_acceleration}"
+            )
 
 
 @dataclass(frozen=True)

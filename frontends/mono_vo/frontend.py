@@ -89,6 +89,7 @@ class MonoVo:
         #: Constant-velocity model: last inter-frame motion (T_cw(k) = velocity @ T_cw(k-1)).
         self.velocity = np.eye(4)
         self.last_frame_index = -1
+        self.last_timestamp = 0.0
         self.failed_relocalisations = 0
         #: Frames seen since the initialisation reference: posed against the new map once it exists.
         self.pending: list[tuple[int, float, Features]] = []
@@ -202,7 +203,11 @@ class MonoVo:
         assert self.T_cw_last is not None
         steps = max(1, frame.index - self.last_frame_index)
         predicted = _fraction_of_motion(self.velocity, steps) @ self.T_cw_last
-        estimate = self.tracker.track(self.segment_map, features, tree, predicted, frame.index)
+        elapsed = max(frame.timestamp - self.last_timestamp, 0.0)
+        rotation_sigma = float(np.radians(self.config.tracking.rotation_prior_acceleration)) * elapsed**2
+        estimate = self.tracker.track(
+            self.segment_map, features, tree, predicted, frame.index, rotation_sigma
+        )
         if estimate is None:
             return None
         self.velocity = _fraction_of_motion(estimate.T_cw @ invert(self.T_cw_last), 1.0 / steps)
@@ -595,6 +600,7 @@ class MonoVo:
     ) -> TrackResult:
         self.T_cw_last = T_cw
         self.last_frame_index = frame.index
+        self.last_timestamp = frame.timestamp
         return TrackResult(
             frame.index, frame.timestamp, state, invert(T_cw), self.segment_map.segment,
             keyframe.output if keyframe is not None else None, observations=observations,

@@ -90,25 +90,35 @@ def project(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray) -> tuple[np.n
     return uv * K[[0, 1], [0, 1]] + K[:2, 2], depth
 
 
+def projection_jacobian(K: np.ndarray, camera_points: np.ndarray) -> np.ndarray:
+    """(M, 2, 6) derivative of the pixels of camera-frame points with respect to a perturbation
+    (rotation w, translation v) of the camera frame that moves each point as dX = w x X + v."""
+    x, y, z = camera_points.T
+    zeros = np.zeros_like(z)
+    pixel = np.stack(
+        [
+            np.column_stack([K[0, 0] / z, zeros, -K[0, 0] * x / z**2]),
+            np.column_stack([zeros, K[1, 1] / z, -K[1, 1] * y / z**2]),
+        ],
+        axis=1,
+    )
+    # w x X = -[X]x w
+    minus_skew = np.zeros((len(z), 3, 3))
+    minus_skew[:, 0, 1], minus_skew[:, 0, 2], minus_skew[:, 1, 2] = z, -y, x
+    minus_skew[:, 1, 0], minus_skew[:, 2, 0], minus_skew[:, 2, 1] = -z, y, -x
+    return np.concatenate([pixel @ minus_skew, pixel], axis=2)
+
+
 def relative_centre_sigma(K: np.ndarray, T_cw: np.ndarray, points_w: np.ndarray, sigmas: np.ndarray) -> float:
     """Standard deviation of the camera centre that PnP from these points fixes (Gauss-Newton
     covariance of the pose from pixels with ``sigmas``), over the points' median depth. Points in
     a narrow strip of the view let rotation and translation trade off: the centre is then poorly
     fixed even by many points. Infinite when the points do not fix the pose at all."""
     camera = transform(T_cw, points_w)
-    x, y, z = camera.T
+    z = camera[:, 2]
     if len(z) < 3 or not (z > 0).all():
         return float("inf")
-    # Pixel Jacobian wrt a camera-frame perturbation (rotation w, translation v): dX = w x X + v.
-    du = np.column_stack([K[0, 0] / z, np.zeros_like(z), -K[0, 0] * x / z**2])
-    dv = np.column_stack([np.zeros_like(z), K[1, 1] / z, -K[1, 1] * y / z**2])
-    skew = np.zeros((len(z), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
-    jacobian = (
-        np.concatenate([np.concatenate([-np.einsum("ni,nij->nj", d, skew), d], axis=1) for d in (du, dv)])
-        / np.concatenate([sigmas, sigmas])[:, None]
-    )
+    jacobian = (projection_jacobian(K, camera) / sigmas[:, None, None]).reshape(-1, 6)
     information = jacobian.T @ jacobian
     if np.linalg.cond(information) > 1e12:
         return float("inf")
