@@ -64,9 +64,6 @@ from frontends.mono_vo.geometry import (
 )
 from frontends.mono_vo.map import SegmentMap
 
-#: Sigma (map units) of the translation in the rotation prior: no pull at the map's scale.
-_FREE_TRANSLATION_SIGMA = 1e3
-
 
 @dataclass(frozen=True)
 class PoseEstimate:
@@ -411,6 +408,7 @@ def refine_with_rotation_prior(
 
     def reprojection(factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list | None) -> np.ndarray:
         T_wc = values.atPose3(T_wc_key).matrix()
+        # Not ``project``: the Jacobian needs the camera-frame points, and NaN would stall LM.
         camera = transform(invert(T_wc), points_w)
         uv = camera[:, :2] / camera[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
         if jacobians is not None:
@@ -421,10 +419,10 @@ def refine_with_rotation_prior(
     graph = gtsam.NonlinearFactorGraph()
     pixel_noise = gtsam.noiseModel.Diagonal.Sigmas(np.repeat(sigmas, 2))
     graph.add(gtsam.CustomFactor(pixel_noise, [T_wc_key], reprojection))
-    prior_sigmas = np.r_[np.full(3, rotation_sigma), np.full(3, _FREE_TRANSLATION_SIGMA)]
+    predicted_orientation = gtsam.Rot3(T_predicted[:3, :3].T)
     graph.add(
-        gtsam.PriorFactorPose3(
-            T_wc_key, gtsam.Pose3(invert(T_predicted)), gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)
+        gtsam.PoseRotationPrior3D(
+            T_wc_key, predicted_orientation, gtsam.noiseModel.Isotropic.Sigma(3, rotation_sigma)
         )
     )
     values = gtsam.Values()
