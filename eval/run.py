@@ -285,6 +285,7 @@ def global_ba_figures(closing: LoopClosing) -> dict[str, Any]:
         "global_ba_keyframes": s.keyframes,
         "global_ba_points": s.points,
         "global_ba_loop_observations": s.loop_observations,
+        "global_ba_fused_observations": s.fused_observations,
         "global_ba_median_error_px_before": s.median_error_before_px,
         "global_ba_median_error_px_after": s.median_error_after_px,
         "frames_reposed": closing.frames_reposed,

@@ -112,16 +112,84 @@ def test_loop_correspondences_undo_the_drift() -> None:
     assert np.ptp(scales) / np.median(scales) < 0.02
 
 
-def test_the_loop_correspondences_close_the_loop() -> None:
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_loop_correspondences_close_the_loop(seed: int) -> None:
     """Without them the two visits share no point: bundle adjustment straightens the creep that
     contradicts the pixels (it is not a consistent drift) but keeps the chain's own drift (from
-    depth and pixel noise), which only the loop removes (measured: 0.0123 vs 0.0056 m)."""
-    poses, keyframes, loops, estimates, _ = _loop_scene()
+    depth and pixel noise), which only the loop removes (measured over seeds 0-2: 0.0053 / 0.0043 /
+    0.0055 m against 0.0074 / 0.0119 / 0.0089 m)."""
+    poses, keyframes, loops, estimates, _ = _loop_scene(seed)
     closed = global_bundle_adjustment(keyframes, estimates, loops, CAMERA)
     open_chain = global_bundle_adjustment(keyframes, estimates, [], CAMERA)
     assert closed is not None and open_chain is not None
     assert open_chain.stats.loop_observations == 0
-    assert _aligned_error(closed.poses, poses) < 0.6 * _aligned_error(open_chain.poses, poses)
+    assert _aligned_error(closed.poses, poses) < 0.8 * _aligned_error(open_chain.poses, poses)
+
+
+def test_the_default_settings_reach_the_converged_map() -> None:
+    """The gauge is a weak prior, so Levenberg-Marquardt's default 10 iterations / 1e-3 end where 100
+    iterations / 1e-9 do (with the oldest keyframe held at 1e-6 it stopped in a flat valley: seed 1
+    0.0179 m against 0.0044 m converged)."""
+    poses, keyframes, loops, estimates, _ = _loop_scene(1)
+    default = global_bundle_adjustment(keyframes, estimates, loops, CAMERA)
+    converged = GlobalBundleAdjustmentConfig(iterations=100, relative_error_tolerance=1e-9)
+    reference = global_bundle_adjustment(keyframes, estimates, loops, CAMERA, converged)
+    assert default is not None and reference is not None
+    assert abs(_aligned_error(default.poses, poses) - _aligned_error(reference.poses, poses)) < 2e-4
+    assert _aligned_error(default.poses, poses) < 0.006
+
+
+def _remapped(keyframes: list[Keyframe], points: int, seed: int, consistent: bool = True) -> list[Keyframe]:
+    """The same wall mapped again and again: each point gets a new id every 4 keyframes (staggered
+    per point), as a frontend that loses points and triangulates them anew does; descriptors are
+    one per physical point with 1/16 of the bits flipped per observation (``consistent``), or
+    random per keyframe."""
+    rng = np.random.default_rng([seed, 9])
+    offset = rng.integers(0, 4, points)
+    descriptor = rng.integers(0, 256, (points, 32), dtype=np.uint8)
+    result = []
+    for k, kf in enumerate(keyframes):
+        assert kf.point_ids is not None
+        physical = kf.point_ids % points
+        own = (
+            descriptor[physical] if consistent else rng.integers(0, 256, (len(physical), 32), dtype=np.uint8)
+        )
+        flips = np.bitwise_and.reduce(rng.integers(0, 256, (4, *own.shape), dtype=np.uint8))
+        ids = physical + points * ((k + offset[physical]) // 4)
+        result.append(replace(kf, point_ids=ids, descriptors=own ^ flips))
+    return result
+
+
+def test_fusion_joins_the_duplicated_points_of_a_map() -> None:
+    """Points seen again under new ids are found by projection and descriptor and observed by every
+    keyframe that sees them: a better map than the duplicates give (measured over seeds 0-2:
+    0.0055 / 0.0050 / 0.0044 m against 0.0058 / 0.0067 / 0.0065 m)."""
+    fused_error = duplicated_error = 0.0
+    for seed in (0, 1, 2):
+        poses, keyframes, loops, estimates, wall = _loop_scene(seed)
+        remapped = _remapped(keyframes, len(wall), seed)
+        fused = global_bundle_adjustment(remapped, estimates, loops, CAMERA)
+        no_fusion = GlobalBundleAdjustmentConfig(fuse_radius_px=0.0)
+        duplicated = global_bundle_adjustment(remapped, estimates, loops, CAMERA, no_fusion)
+        assert fused is not None and duplicated is not None
+        assert fused.stats.fused_observations > 0.3 * duplicated.stats.observations
+        assert duplicated.stats.fused_observations == 0
+        fused_error += _aligned_error(fused.poses, poses)
+        duplicated_error += _aligned_error(duplicated.poses, poses)
+    assert fused_error < 0.85 * duplicated_error, (fused_error, duplicated_error)
+
+
+def test_fusion_needs_the_descriptors_to_agree() -> None:
+    """A point projecting onto a keypoint whose descriptor is another's is not fused; keyframes
+    without descriptors take no part."""
+    _, keyframes, loops, estimates, wall = _loop_scene(0)
+    unrelated = global_bundle_adjustment(
+        _remapped(keyframes, len(wall), 0, consistent=False), estimates, loops, CAMERA
+    )
+    without = global_bundle_adjustment(keyframes, estimates, loops, CAMERA)
+    assert unrelated is not None and without is not None
+    assert unrelated.stats.fused_observations < 0.001 * unrelated.stats.observations
+    assert without.stats.fused_observations == 0
 
 
 def test_nothing_to_adjust_gives_none() -> None:
@@ -135,7 +203,7 @@ def test_repose_frame_from_adjusted_points() -> None:
     pose = _look_out(31.0)
     uv, in_camera = _project(pose, wall)
     seen = np.flatnonzero((in_camera[:, 2] > 0.1) & (np.abs(uv - [320, 240]) < [320, 240]).all(axis=1))
-    stats = GlobalBundleAdjustmentStats(0, len(wall), 0, 0, 0.0, 0.0)
+    stats = GlobalBundleAdjustmentStats(0, len(wall), 0, 0, 0, 0.0, 0.0)
     adjusted = AdjustedMap({}, {(0, i): i for i in range(len(wall))}, wall, stats)
     observations = PointObservations(uv[seen] + rng.normal(0, 0.5, (len(seen), 2)), seen)
     config = GlobalBundleAdjustmentConfig()
@@ -152,7 +220,16 @@ def test_repose_frame_from_adjusted_points() -> None:
     assert repose_frame(adjusted, 0, observations, _look_out(50.0), camera, config) is None
 
 
-@pytest.mark.parametrize("field, value", [("pixel_sigma", 0.0), ("iterations", 0), ("min_observations", 1)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("pixel_sigma", 0.0),
+        ("iterations", 0),
+        ("min_observations", 1),
+        ("fuse_radius_px", -1.0),
+        ("fuse_max_hamming", 0),
+    ],
+)
 def test_bad_settings_are_config_errors(field: str, value: float) -> None:
     from frontends.errors import ConfigError
 
