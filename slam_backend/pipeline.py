@@ -372,7 +372,7 @@ class LoopClosing:
             self.counters.seconds["repose_frames"] += time.perf_counter() - start
         s = self.adjusted.stats
         log.info(
-                "global bundle adjustment: %d keyframes, %d points, %d observations (%d from loops, "
+            "global bundle adjustment: %d keyframes, %d points, %d observations (%d from loops, "
             "%d fused), median reprojection error %.2f -> %.2f px; %d of %d frames posed again",
             s.keyframes, s.points, s.observations, s.loop_observations, s.fused_observations,
             s.median_error_before_px, s.median_error_after_px, self.frames_reposed, len(self._frames),
