@@ -26,12 +26,6 @@ from pathlib import Path
 from typing import Any, Protocol, cast, get_args
 
 import numpy as np
-from sklearn.calibration import CalibratedClassifierCV
-from sklearn.neural_network import MLPClassifier
-from sklearn.pipeline import make_pipeline
-from sklearn.preprocessing import StandardScaler
-from sklearn.svm import SVC
-from sklearn.tree import DecisionTreeClassifier
 
 from frontends.errors import ConfigError
 from frontends.synth import SynthConfig, cached_scene
@@ -52,16 +46,28 @@ class Classifier(Protocol):
 
 def svm_rbf(seed: int) -> Classifier:
     """RBF SVM with Platt-scaled probabilities (sigmoid calibration, 5-fold, one refit SVM)."""
+    # scikit-learn is imported where it is used: it costs ~120 MB and every `symbio` command.
+    from sklearn.calibration import CalibratedClassifierCV
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
     svm = SVC(kernel="rbf", random_state=seed)
     return make_pipeline(StandardScaler(), CalibratedClassifierCV(svm, method="sigmoid", ensemble=False))
 
 
 def decision_tree(seed: int) -> Classifier:
+    from sklearn.tree import DecisionTreeClassifier
+
     return DecisionTreeClassifier(min_samples_leaf=5, random_state=seed)
 
 
 def neural_network(seed: int) -> Classifier:
     """The paper's "Neural Network with 4x16 layers": four hidden layers of 16 ReLU units."""
+    from sklearn.neural_network import MLPClassifier
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
     return make_pipeline(
         StandardScaler(), MLPClassifier(hidden_layer_sizes=(16, 16, 16, 16), max_iter=500, random_state=seed)
     )

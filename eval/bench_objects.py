@@ -86,7 +86,12 @@ def bench(shared: Path, repeats: int) -> tuple[dict[str, float | int | str], lis
     files = sorted((shared / FRAMES).glob("*.png"))
     if not files:
         raise SystemExit(f"no frames in {shared / FRAMES}; pass --shared or set SYMBIO_SHARED")
-    images = [image for image in (cv2.imread(str(f)) for f in files) if image is not None]
+    # Bytes I/O: cv2.imread crashes on a path that is not UTF-8 (SYMBIO_SHARED may hold one).
+    images = [
+        image
+        for image in (cv2.imdecode(np.fromfile(f, dtype=np.uint8), cv2.IMREAD_COLOR) for f in files)
+        if image is not None
+    ]
     start = time.perf_counter()
     by_cv2 = ssd_cv2.create()
     load_cv2 = time.perf_counter() - start

@@ -37,8 +37,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from eval.components import load_components
 from eval.demo import synthetic_components
-from eval.run import build_loop_closing, load_components, run_odometry
+from eval.run import build_loop_closing, run_odometry
 from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.datasets import open_dataset

@@ -6,7 +6,9 @@ the whole pipeline with the default components: ``mono-vo`` frontend, ``symbiolc
 with the ``oracle`` object detector (the scene's GT objects with 30 % misses: the CNN does not know
 synthetic shapes), ``pycolmap`` verification and the ``gtsam`` Sim(3) pose graph with PCM + GNC.
 It prints a short table and writes the same folder as ``symbio run`` (trajectories, loops.csv,
-metrics.json, plots, report.html) plus the rendered scene under ``DIR/scene``.
+metrics.json, plots, report.html) plus the rendered scene under ``DIR/scene``, with the same
+rules for DIR (see ``symbio run --help``): a folder holding files symbio did not write is refused
+unless ``--overwrite``; running the demo again into its own folder replaces the earlier outputs.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from eval.run import Components, build_loop_closing, run_odometry
+from eval.components import Components
+from eval.outputs import RunFolder
 from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, write_json
 from frontends.config import config_to_dict, load_config
@@ -24,6 +27,7 @@ from frontends.datasets import open_dataset
 from frontends.synth.world import SynthConfig
 from frontends.synth.writer import write_scene
 
+CONTACT_SHEET = "contact_sheet.png"
 #: Frames of the demo scene: the synthetic default (1.4 laps at walking speed, 20 s at 30 fps).
 DEMO_FRAMES = SynthConfig().frames
 #: The oracle's miss rate: the paper's label matching tolerates up to 40 % missing labels.
@@ -54,6 +58,11 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     demo.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
+    demo.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into a folder that holds other files (only the demo's own files are replaced)",
+    )
     demo.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     demo.add_argument("--frames", type=int, default=DEMO_FRAMES, help=f"frames (default {DEMO_FRAMES})")
     demo.add_argument(
@@ -72,11 +81,21 @@ def add_parser(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     overrides = [f"seed={args.seed}", f"frames={args.frames}", "trajectory=loop", *args.overrides]
     config = load_config(SynthConfig, None, overrides)
-    scene_dir = args.out / "scene"
-    start = time.perf_counter()
-    write_scene(
-        config, scene_dir, contact_sheet=args.out / "contact_sheet.png", progress=not args.no_progress
+    from eval.run import run_folder  # the pipeline's libraries load once the options are checked
+
+    folder = run_folder(
+        args.out, overwrite=args.overwrite, command="symbio demo", extra_names=(CONTACT_SHEET,)
     )
+    with folder:
+        return _run(args, config, folder)
+
+
+def _run(args: argparse.Namespace, config: SynthConfig, folder: RunFolder) -> int:
+    from eval.run import build_loop_closing, run_odometry
+
+    scene_dir = folder.folder("scene")
+    start = time.perf_counter()
+    write_scene(config, scene_dir, contact_sheet=folder.path(CONTACT_SHEET), progress=not args.no_progress)
     render_seconds = time.perf_counter() - start
     dataset = open_dataset(scene_dir)
     components = synthetic_components()
@@ -96,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     figures = run_odometry(
         dataset,
         frontend,
-        args.out,
+        folder,
         loop_closing=closing,
         progress=not args.no_progress,
         tolerance=3,

@@ -46,6 +46,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -54,8 +55,10 @@ from frontends.datasets import Dataset
 from frontends.errors import ConfigError, SymbioError
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
-from slam_backend.pipeline import LoopClosing
-from slam_backend.verify import Verification, Verifier
+
+if TYPE_CHECKING:  # the run's CLI lists KINDS without loading gtsam and pycolmap
+    from slam_backend.pipeline import LoopClosing
+    from slam_backend.verify import Verification, Verifier
 
 IMAGE_FAULTS = (
     "corrupt-image", "truncated-image", "wrong-size", "black", "overexposed", "blur", "no-features"
@@ -355,6 +358,8 @@ class FaultyVerifier:
 def fabricated_verification(query: Keyframe, match: Keyframe) -> Verification:
     """A verified loop claiming ``query`` stands where ``match`` stood (identity Sim(3)), with the
     covariance of a confident verification (``FALSE_LOOP_SIGMAS``)."""
+    from slam_backend.verify import Verification
+
     depth = 1.0
     if match.points3d is not None:
         depths = match.points3d[:, 2]

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import contextlib
 import html
+import io
 import json
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import matplotlib
@@ -28,7 +28,9 @@ from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import plot as evo_plot
 
+from eval.outputs import RunFolder
 from frontends.datasets import Dataset
+from frontends.errors import display_path
 from slam_backend.pipeline import LoopRecord
 
 TOP_VIEW_FILE = "trajectory_top.png"
@@ -74,8 +76,16 @@ def _shown(poses: Poses, gt: PoseTrajectory3D | None) -> PoseTrajectory3D:
     return _trajectory(poses)
 
 
+def _save(figure: Any, folder: RunFolder, name: str) -> None:
+    """Render ``figure`` as PNG in memory, then write it atomically (never through a symlink)."""
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    plt.close(figure)
+    folder.write_bytes(name, buffer.getvalue())
+
+
 def write_plots(
-    out_dir: Path,
+    folder: RunFolder,
     dataset: Dataset,
     odometry: Poses,
     final: Poses,
@@ -106,9 +116,9 @@ def write_plots(
         ends = after.positions_xyz[[position[loop.match_frame], position[loop.query_frame]]][:, list(axes)]
         ax.plot(*ends.T, color="tab:green", lw=0.8, alpha=0.8, label="accepted loops" if n == 0 else None)
     ax.legend(loc="best")
-    ax.set_title(f"{dataset.root.name}: {len(accepted)} accepted loops ({len(keyframe_frames)} keyframes)")
-    figure.savefig(out_dir / TOP_VIEW_FILE, dpi=110, bbox_inches="tight")
-    plt.close(figure)
+    name = display_path(dataset.root.name)
+    ax.set_title(f"{name}: {len(accepted)} accepted loops ({len(keyframe_frames)} keyframes)")
+    _save(figure, folder, TOP_VIEW_FILE)
     written.append(TOP_VIEW_FILE)
     if gt is not None:
         figure, ax = plt.subplots(figsize=(9, 4))
@@ -122,14 +132,13 @@ def write_plots(
         ax.set_xlabel("time (s)")
         ax.set_ylabel("APE translation (m, Sim(3)-aligned)")
         ax.legend(loc="best")
-        figure.savefig(out_dir / APE_FILE, dpi=110, bbox_inches="tight")
-        plt.close(figure)
+        _save(figure, folder, APE_FILE)
         written.append(APE_FILE)
     return written
 
 
 def write_report(
-    out_dir: Path,
+    folder: RunFolder,
     figures: Mapping[str, Any],
     config: Mapping[str, Any],
     images: Sequence[str],
@@ -185,7 +194,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:left}}</style></head><bo
 <h2>Configuration</h2><pre>{html.escape(json.dumps(config, indent=2, sort_keys=True, default=str))}</pre>
 </body></html>
 """
-    (out_dir / REPORT_FILE).write_text(page, encoding="utf-8")
+    folder.write_text(REPORT_FILE, page)
 
 
 def _fmt(value: Any) -> str:

@@ -1,89 +1,40 @@
-"""``symbio run``: stream a dataset through the SLAM pipeline and measure it.
+"""The ``symbio run`` pipeline as a library: stream a dataset through a frontend and loop closing,
+measure it and write its output folder (the command line is ``eval.run_cli``; its ``--help`` says
+what every output file holds).
 
 frontend (each frame) -> object detector, loop detector (each keyframe) -> verifier -> backend
-(``slam_backend.pipeline.LoopClosing``). Components are chosen by name (``--frontend``,
-``--detector``, ``--object-detector``, ``--verifier``, ``--backend``) and configured by a run YAML
-(``--config``: sections ``frontend``, ``detector``, ``object_detector``, ``verifier``, ``backend``,
-``loop_closing``; each may name its component with ``name:``; a YAML without any section is the
-frontend's own config) and by ``--set KEY=VALUE`` (a key starting with one of those section names
-goes to that component, any other key to the frontend). ``--no-loops``: odometry only.
-
-Writes to ``--out DIR``:
-
-* ``trajectory_tum.txt``: every posed frame, loop-closed (each frame anchored to the backend's
-  estimate of its keyframe); ``trajectory_odometry_tum.txt``: the same frames, odometry only;
-  ``keyframes_tum.txt``: the loop-closed keyframes. Without loop closing the first equals the second.
-* ``loops.csv``: every verified candidate: query, match (keyframe ids and frames), score, verified,
-  inliers, accepted (the backend's final decision), scale, reason and, with GT poses, the
-  constraint's rotation and translation-direction error against them (deg).
-* ``metrics.json``: ``frames``, ``frames_tracked``, ``tracking_lost``, ``frames_initialising``
-  (seen while a map initialised and not posed afterwards), ``frontend_failures``,
-  ``frames_skipped`` (never given to the frontend: missing or undecodable images, duplicate or
-  backwards timestamps) and ``frames_skipped_<cause>`` (per ``SKIP_CAUSES``), ``keyframes``,
-  ``segments``, ``fps`` (frames per second of the whole pipeline),
-  ``ms_per_frame_<stage>`` (frontend, objects, loop_detector, verifier, backend), ``ate_rmse_before`` /
-  ``ate_rmse_after`` (evo APE translation RMSE after Sim(3) Umeyama alignment to the GT, odometry vs
-  loop-closed, over the same frames: those of segment ``ate_segment``, the one with most tracked
-  frames), ``ate_rmse_after_all`` (every posed frame; segments are one graph after loop closing),
-  ``rpe_rmse_before`` / ``rpe_rmse_after`` (evo RPE translation over 1 s, on the aligned
-  trajectories), ``loops_proposed`` (candidates verified), ``loops_verified``, ``loops_accepted``,
-  ``false_loops_accepted`` (constraints that contradict the GT poses; see ``loop_truth``),
-  ``loops_outside_gt_band``, ``lcd_precision`` / ``lcd_recall`` of the accepted loops against the GT
-  loop pairs (``--tolerance`` frames), ``path_length`` (GT, m), ``interrupted``, the plugin
-  failures (``object_detector_failures``, ``loop_detector_failures``, ``verifier_failures``,
-  ``verifier_timeouts``) and, with ``--inject``, ``faults_injected_<kind>`` (per kind). Figures
-  that need GT are null without it.
-
-Checkpoint and resume: ``--checkpoint-every N`` saves the whole run state to ``DIR/checkpoint.json``
-and ``DIR/checkpoint-FFFFFF.pkl`` every N frames (atomically; see ``eval.checkpoint``); after a
-crash or ``kill -9``, ``symbio run --resume DIR`` continues with the stored dataset and options and
-writes the outputs an uninterrupted run writes, bit for bit. While ``checkpoint.json`` exists the
-run is unfinished: a checkpointed run deletes earlier outputs in DIR when it starts or resumes, and
-its checkpoint once its outputs are written.
-
-A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
-failing object/loop detectors and verifiers cost one keyframe or candidate (counted), a verifier
-past ``loop_closing.verify_timeout_s`` its candidate (reason "timeout"). ``--inject`` injects
-faults to try this (``eval.inject``; README "What we test against"). When the run
-stops early (Ctrl-C, an unreadable image with --strict), whatever was processed is written before
-the error is re-raised.
-
-Examples:
-  symbio run scene --out run                                     # mono-vo + symbiolcd2 + pycolmap + gtsam
-  symbio run scene --no-loops --out run_vo                       # odometry only
-  symbio run scene --detector vbow --set detector.threshold=0.1 --out run_vbow
-  symbio run scene --frontend replay --set trajectory=scene/groundtruth.txt --no-loops --out run_gt
-  symbio run scene --inject corrupt-image:0.05,black:0.02,objects-raise --inject-seed 1 --out run_faults
-  symbio run scene --checkpoint-every 50 --out run                # after a crash: symbio run --resume run
-  symbio run kitti/sequences/06 --frontend replay --set trajectory=orb.txt --set format=kitti \\
-      --no-loops --out run_orb
+(``slam_backend.pipeline.LoopClosing``). ``run_odometry`` writes, into a claimed output folder
+(``eval.outputs.RunFolder``), the loop-closed and odometry trajectories, the keyframes, ``loops.csv``,
+the plots, ``report.html`` and last ``metrics.json`` (``complete`` true once everything else is in
+place).
 """
 
 from __future__ import annotations
 
-import argparse
+import contextlib
 import csv
 import itertools
 import logging
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from evo.core import metrics
 from evo.core.geometry import GeometryException
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from tqdm import tqdm
 
 from eval import checkpoint
-from eval.checkpoint import Checkpointer, CheckpointError, RunState
-from eval.inject import KINDS, InjectedDataset, Injection, InjectionSpec
+from eval.checkpoint import Checkpointer, RunState
+from eval.components import Components
+from eval.inject import InjectedDataset
 from eval.lcd_eval import default_object_detector
 from eval.lcd_metrics import LoopPoseError, gt_references, has_reachable_loop, is_true_match, loop_pose_error
+from eval.outputs import RunFolder
 from eval.report import (
     APE_FILE,
     REPORT_FILE,
@@ -95,7 +46,6 @@ from eval.report import (
 )
 from eval.viewer import RerunViewer
 from frontends.base import (
-    FRONTENDS,
     CorrectableFrontend,
     Frontend,
     MaskingFrontend,
@@ -103,12 +53,11 @@ from frontends.base import (
     TrackResult,
     with_lookahead,
 )
-from frontends.cli_common import add_json_option, print_figures, write_json
-from frontends.config import config_to_dict, load_config, read_yaml_mapping
-from frontends.datasets import Dataset, open_dataset
+from frontends.cli_common import flat_json
+from frontends.config import load_config
+from frontends.datasets import Dataset
 from frontends.datasets.base import SKIP_CAUSES
-from frontends.datasets.cli import add_dataset_arguments
-from frontends.errors import ConfigError
+from frontends.errors import display_path
 from frontends.trajectory_io import write_trajectory
 from frontends.types import Frame
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
@@ -125,72 +74,8 @@ LOOPS_FILE = "loops.csv"
 METRICS_FILE = "metrics.json"
 RRD_FILE = "run.rrd"
 OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE, REPORT_FILE)
-SECTIONS = ("frontend", "detector", "object_detector", "verifier", "backend", "loop_closing")
 #: RPE is measured over this much time (s), a few keyframes at walking speed.
 RPE_DELTA_S = 1.0
-
-
-@dataclass(frozen=True)
-class Components:
-    """Names and settings of every part of the pipeline (``--config`` sections, ``--set``)."""
-
-    frontend: str = "mono-vo"
-    detector: str = "symbiolcd2"
-    #: Empty: the oracle on synthetic scenes (they carry GT objects), ssd-mobilenet elsewhere.
-    object_detector: str = ""
-    verifier: str = "pycolmap"
-    backend: str = "gtsam"
-    #: Per section: ``key=value`` overrides (from the YAML file first, then the command line).
-    overrides: dict[str, list[str]] = field(default_factory=dict)
-
-    def of(self, section: str) -> list[str]:
-        return self.overrides.get(section, [])
-
-
-def _flatten(mapping: dict[str, Any], prefix: str = "") -> list[str]:
-    """A YAML section as ``key=value`` overrides, each value dumped back to YAML."""
-    items = []
-    for key, value in mapping.items():
-        if isinstance(value, dict):
-            items += _flatten(value, f"{prefix}{key}.")
-        else:
-            # A scalar document ends with "..."; the override wants the value alone.
-            dumped = yaml.safe_dump(value, default_flow_style=True).removesuffix("\n").removesuffix("\n...")
-            items.append(f"{prefix}{key}={dumped}")
-    return items
-
-
-def load_components(
-    config_path: Path | None, overrides: Sequence[str], names: dict[str, str | None]
-) -> Components:
-    """Components from a run YAML, ``--set`` overrides and the ``--frontend``/... name options."""
-    chosen: dict[str, str] = {}
-    per_section: dict[str, list[str]] = {section: [] for section in SECTIONS}
-    if config_path is not None:
-        mapping, _ = read_yaml_mapping(config_path)
-        if any(key in SECTIONS for key in mapping):
-            for key, value in mapping.items():
-                if key not in SECTIONS:
-                    raise ConfigError(f"{config_path}: unknown section {key!r} (expected one of {SECTIONS})")
-                if not isinstance(value, dict):
-                    raise ConfigError(f"{config_path}: section {key!r} must be a mapping")
-                value = dict(value)
-                if "name" in value:
-                    chosen[key] = str(value.pop("name"))
-                per_section[key] += _flatten(value)
-        else:  # the frontend's own config file
-            per_section["frontend"] += _flatten(mapping)
-    for item in overrides:
-        section, dot, rest = item.partition(".")
-        if dot and section in SECTIONS:
-            per_section[section].append(rest)
-        else:
-            per_section["frontend"].append(item)
-    for section, name in names.items():
-        if name is not None:
-            chosen[section] = name
-    known = {f.name for f in fields(Components)}
-    return Components(**{k: v for k, v in chosen.items() if k in known}, overrides=per_section)
 
 
 @dataclass
@@ -208,6 +93,8 @@ class PipelineRun:
     checkpoints: int = 0
     checkpoint_seconds: float = 0.0
     checkpoint_bytes: int = 0
+    #: Checkpoints that could not be written (disk full, ...); the run went on without them.
+    checkpoint_failures: int = 0
 
     @property
     def tracked(self) -> list[TrackResult]:
@@ -313,7 +200,7 @@ def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopC
 def run_odometry(
     dataset: Dataset,
     frontend: Frontend,
-    out_dir: Path,
+    out: Path | RunFolder,
     *,
     loop_closing: LoopClosing | None = None,
     max_frames: int | None = None,
@@ -325,14 +212,57 @@ def run_odometry(
     resume: RunState | None = None,
 ) -> dict[str, Any]:
     """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
-    the trajectories, loops and metrics to ``out_dir``; returns the figures of ``metrics.json``.
+    the trajectories, loops and metrics to ``out``; returns the figures of ``metrics.json``.
+
+    ``out``: a claimed ``RunFolder``, or a folder path that is claimed for the call (refused when it
+    holds files symbio did not write, or another command is writing there: see ``eval.outputs``).
 
     ``checkpointer`` saves the state every N frames (deleted once the outputs are written);
     ``resume``: the state of a checkpoint (its ``frontend`` and ``closing`` must be the ones passed),
     whose processed frames are skipped. If anything stops the run early (including
     KeyboardInterrupt), what was processed is written first and the exception re-raised.
     """
-    out_dir.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as stack:
+        folder = out if isinstance(out, RunFolder) else stack.enter_context(run_folder(out))
+        return _run_into(
+            folder, dataset, frontend, loop_closing, max_frames, progress, tolerance, config, viewer,
+            checkpointer, resume,
+        )  # fmt: skip
+
+
+def run_folder(
+    path: Path,
+    *,
+    overwrite: bool = False,
+    resume: bool = False,
+    command: str = "symbio run",
+    extra_names: tuple[str, ...] = (),
+) -> RunFolder:
+    """The output folder of ``symbio run`` at ``path`` (unclaimed; use it as a context manager);
+    ``command`` and ``extra_names``: those of a command that writes more (``symbio demo``)."""
+    return RunFolder(
+        path,
+        command,
+        names=(*OUTPUT_FILES, TOP_VIEW_FILE, APE_FILE, RRD_FILE, checkpoint.HEADER_FILE, *extra_names),
+        keep=(checkpoint.HEADER_FILE, "checkpoint-*.pkl"),
+        overwrite=overwrite,
+        resume=resume,
+    )
+
+
+def _run_into(
+    folder: RunFolder,
+    dataset: Dataset,
+    frontend: Frontend,
+    loop_closing: LoopClosing | None,
+    max_frames: int | None,
+    progress: bool,
+    tolerance: int,
+    config: dict[str, Any] | None,
+    viewer: RerunViewer | None,
+    checkpointer: Checkpointer | None,
+    resume: RunState | None,
+) -> dict[str, Any]:
     closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
     if (
         closing.detector is not None
@@ -370,11 +300,11 @@ def run_odometry(
             stream_frames(frames, frontend, closing, run, viewer, after_frame)
     except BaseException:
         run.interrupted = True
-        log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), out_dir)
+        log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), folder.root)
         closing.finish()
-        write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+        write_outputs(folder, dataset, frontend, closing, run, tolerance, config or {}, viewer)
         raise
-    figures = write_outputs(out_dir, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+    figures = write_outputs(folder, dataset, frontend, closing, run, tolerance, config or {}, viewer)
     if run.results and all(r.pose is None for r in run.results):
         log.warning(
             "%s posed none of the %d frames: it never initialised. Likely causes: too little parallax "
@@ -384,12 +314,12 @@ def run_odometry(
             frontend.name, len(run.results),
         )  # fmt: skip
     if checkpointer is not None:
-        checkpoint.discard(out_dir)
+        checkpoint.discard(folder.root)
     return figures
 
 
 def write_outputs(
-    out_dir: Path,
+    folder: RunFolder,
     dataset: Dataset,
     frontend: Frontend,
     closing: LoopClosing,
@@ -403,19 +333,22 @@ def write_outputs(
     if viewer is not None:
         viewer.trajectories(final, odometry)
         viewer.close()
-    write_poses(out_dir / TRAJECTORY_FILE, [p for _, _, p in final], [t for _, t, _ in final])
-    write_poses(out_dir / ODOMETRY_FILE, [p for _, _, p in odometry], [t for _, t, _ in odometry])
+    with folder.atomic(TRAJECTORY_FILE) as path:
+        write_poses(path, [p for _, _, p in final], [t for _, t, _ in final])
+    with folder.atomic(ODOMETRY_FILE) as path:
+        write_poses(path, [p for _, _, p in odometry], [t for _, t, _ in odometry])
     keyframes = closing.keyframes
     corrected = closing.corrected_keyframe_poses()
-    write_poses(
-        out_dir / KEYFRAMES_FILE, [corrected[k.id] for k in keyframes], [k.timestamp for k in keyframes]
-    )
+    with folder.atomic(KEYFRAMES_FILE) as path:
+        write_poses(path, [corrected[k.id] for k in keyframes], [k.timestamp for k in keyframes])
     loops = closing.loops()
-    write_loops_csv(out_dir / LOOPS_FILE, loops, loop_pose_errors(dataset, loops))
+    with folder.atomic(LOOPS_FILE) as path:
+        write_loops_csv(path, loops, loop_pose_errors(dataset, loops))
     figures = run_figures(dataset, frontend, closing, run, final, odometry, loops, tolerance)
-    write_json(out_dir / METRICS_FILE, figures)
-    images = write_plots(out_dir, dataset, odometry, final, loops, {k.id: k.frame_index for k in keyframes})
-    write_report(out_dir, figures, config, images, loops)
+    images = write_plots(folder, dataset, odometry, final, loops, {k.id: k.frame_index for k in keyframes})
+    write_report(folder, figures, config, images, loops)
+    # Last: a metrics.json that says "complete" means every other output above is in place.
+    folder.write_text(METRICS_FILE, flat_json(figures))
     return figures
 
 
@@ -485,7 +418,7 @@ def run_figures(
     counters = closing.counters
     frames = max(len(run.results), 1)
     figures: dict[str, Any] = {
-        "dataset": str(dataset.root),
+        "dataset": display_path(dataset.root),
         "format": dataset.format_name,
         "frontend": frontend.name,
         "loop_closing": closing.detector is not None,
@@ -523,9 +456,12 @@ def run_figures(
         "verifier_timeouts": counters.verifier_timeouts,
         **(dataset.injection.figures() if isinstance(dataset, InjectedDataset) else {}),
         "interrupted": run.interrupted,
+        # metrics.json is written after every other output: true means all of them are in place.
+        "complete": not run.interrupted,
         "checkpoints": run.checkpoints,
         "ms_per_checkpoint": 1e3 * run.checkpoint_seconds / run.checkpoints if run.checkpoints else None,
         "checkpoint_bytes": run.checkpoint_bytes if run.checkpoints else None,
+        "checkpoint_failures": run.checkpoint_failures,
     }
     figures.update(loop_truth(dataset, loops, keyframes, tolerance))
     return figures
@@ -614,221 +550,3 @@ def gt_path_length(dataset: Dataset, results: list[TrackResult]) -> float | None
     covered = dataset.gt_poses[results[0].frame_index : results[-1].frame_index + 1]
     poses = covered[np.isfinite(covered).all(axis=(1, 2))]
     return float(PosePath3D(poses_se3=list(poses)).path_length) if len(poses) > 1 else 0.0
-
-
-def add_parser(subparsers: Any) -> None:
-    parser = subparsers.add_parser(
-        "run",
-        help="run the SLAM pipeline over a dataset: trajectories, loops, ATE/RPE before and after",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    add_dataset_arguments(parser, path_optional=True)
-    defaults = Components()
-    parser.add_argument(
-        "--frontend",
-        help=f"frontend ({', '.join(FRONTENDS.names())}; default {defaults.frontend}). "
-        "replay takes its poses from a file: --set trajectory=FILE [--set format=kitti]",
-    )
-    parser.add_argument(
-        "--detector", help=f"loop detector ({', '.join(LOOP_DETECTORS.names())}; default {defaults.detector})"
-    )
-    parser.add_argument(
-        "--object-detector",
-        help=f"object detector ({', '.join(OBJECT_DETECTORS.names())}; default: oracle on synthetic "
-        "scenes, ssd-mobilenet elsewhere)",
-    )
-    parser.add_argument("--verifier", help=f"verifier ({', '.join(VERIFIERS.names())}; default pycolmap)")
-    parser.add_argument(
-        "--backend", help=f"pose-graph backend ({', '.join(BACKENDS.names())}; default gtsam)"
-    )
-    parser.add_argument(
-        "--config",
-        type=Path,
-        help=f"run YAML with sections {', '.join(SECTIONS)} (each may set name:), or a frontend config",
-    )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a setting: SECTION.key=value for " + ", ".join(SECTIONS[1:]) + "; other keys "
-        "(or frontend.key) go to the frontend",
-    )
-    parser.add_argument("--no-loops", action="store_true", help="odometry only, no loop closing")
-    parser.add_argument(
-        "--viewer",
-        choices=["rerun"],
-        help="log images, keypoints, objects, the three-tier graph, trajectories and loops to rerun: "
-        "DIR/run.rrd, or a running viewer with --viewer-connect (optional extra symbiolcd2[viewer])",
-    )
-    parser.add_argument("--viewer-connect", metavar="URL", help="gRPC URL of a running rerun viewer")
-    parser.add_argument(
-        "--tolerance",
-        type=int,
-        default=3,
-        help="frames an accepted loop may be off a GT reference (default 3)",
-    )
-    parser.add_argument("--out", type=Path, metavar="DIR", help="output folder (with --resume: DIR)")
-    parser.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N frames")
-    parser.add_argument(
-        "--checkpoint-every",
-        type=int,
-        metavar="N",
-        help="save the whole run state to the output folder every N frames (atomically; deleted "
-        "when the run ends) so that --resume can continue after a crash or kill",
-    )
-    parser.add_argument(
-        "--resume",
-        type=Path,
-        metavar="DIR",
-        help="continue the checkpointed run in DIR with its stored dataset and options (DATASET and "
-        "options may be repeated but must match); the outputs equal an uninterrupted run's",
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument(
-        "--inject",
-        metavar="KIND[:RATE],...",
-        help="debug: inject faults into the run, RATE = fraction of frames or plugin calls hit. Kinds: "
-        f"{', '.join(KINDS)} (see eval/inject.py and the README, 'What we test against')",
-    )
-    parser.add_argument(
-        "--inject-seed", type=int, default=0, metavar="N", help="seed of the --inject choices (default 0)"
-    )
-    add_json_option(parser)
-    parser.set_defaults(handler=lambda args: run_command(args, parser.get_default))
-
-
-def describe(components: Components, closing: LoopClosing, args: argparse.Namespace) -> dict[str, Any]:
-    """The run's configuration as the report shows it: component names, settings, options."""
-    return {
-        "dataset": str(args.path),
-        "no_loops": args.no_loops,
-        "tolerance": args.tolerance,
-        "inject": args.inject,
-        "inject_seed": args.inject_seed if args.inject else None,
-        "components": {
-            f.name: getattr(components, f.name) for f in fields(Components) if f.name != "overrides"
-        },
-        "overrides": components.overrides,
-        "loop_closing": config_to_dict(closing.config),
-    }
-
-
-#: Options that do not change what a run computes: a resumed run may set them anew.
-RESUME_FREE_OPTIONS = ("handler", "command", "verbose", "resume", "out", "json", "no_progress")
-#: How the options whose name is not their destination are spelled in messages.
-OPTION_NAMES = {"path": "DATASET", "fmt": "--format", "overrides": "--set"}
-
-
-def resumed_options(
-    args: argparse.Namespace, default: Callable[[str], Any], header: dict[str, Any]
-) -> argparse.Namespace:
-    """``args`` with the run options stored in the checkpoint; a conflicting option given on the
-    command line is a CheckpointError (naming the header)."""
-    assert args.resume is not None
-    path = args.resume / checkpoint.HEADER_FILE
-    if args.out is not None and args.out.resolve() != args.resume.resolve():
-        raise CheckpointError(path, f"--out {args.out} differs from --resume {args.resume}")
-    stored = header["spec"]
-    given = checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS)
-    for key, value in given.items():
-        if value == checkpoint.run_spec({key: default(key)}, ())[key]:
-            continue  # not given on this command line
-        if stored.get(key) != value:
-            option = OPTION_NAMES.get(key, "--" + key.replace("_", "-"))
-            raise CheckpointError(
-                path, f"the checkpoint was made with {option} {stored.get(key)!r}, not {value!r}"
-            )
-    resumed = argparse.Namespace(**vars(args))
-    paths = set(stored["path_options"])
-    for key, value in stored.items():
-        if key not in ("components", "path_options"):
-            setattr(resumed, key, Path(value) if key in paths and value is not None else value)
-    resumed.out = args.resume
-    return resumed
-
-
-def run_command(args: argparse.Namespace, default: Callable[[str], Any] = lambda key: None) -> int:
-    """``symbio run``; ``default`` gives the parser's default of an option (what --resume compares)."""
-    header = checkpoint.read_header(args.resume) if args.resume is not None else None
-    if header is not None:
-        args = resumed_options(args, default, header)
-    if args.path is None or args.out is None:
-        raise ConfigError("symbio run: give DATASET and --out DIR (or --resume DIR)")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise ConfigError(f"--max-frames {args.max_frames}: must be at least 1")
-    if args.checkpoint_every is not None and args.checkpoint_every < 1:
-        raise ConfigError(f"--checkpoint-every {args.checkpoint_every}: must be at least 1")
-    if args.viewer is not None and (args.checkpoint_every is not None or header is not None):
-        raise ConfigError("--viewer cannot be combined with --checkpoint-every or --resume")
-    names = {
-        "frontend": args.frontend,
-        "detector": args.detector,
-        "object_detector": args.object_detector,
-        "verifier": args.verifier,
-        "backend": args.backend,
-    }
-    components = load_components(args.config, args.overrides, names)
-    spec = {
-        **checkpoint.run_spec(vars(args), RESUME_FREE_OPTIONS),
-        "components": checkpoint.run_spec(vars(components), ()),
-        "path_options": sorted(k for k, v in vars(args).items() if isinstance(v, Path)),
-    }
-    if args.inject and (args.checkpoint_every is not None or header is not None):
-        # The injected faults' counters and wrappers are a debugging harness, not run state.
-        raise ConfigError("--inject cannot be combined with --checkpoint-every or --resume")
-    injection = Injection(InjectionSpec.parse(args.inject, args.inject_seed)) if args.inject else None
-    dataset: Dataset = open_dataset(args.path, args.fmt, calib=args.calib, strict=args.strict)
-    if injection is not None:
-        dataset = injection.wrap_dataset(dataset)
-    checkpointer = None
-    if args.checkpoint_every is not None:
-        checkpointer = Checkpointer(args.out, args.checkpoint_every, spec, dataset)
-    resume = None
-    if header is None:
-        checkpoint.discard(args.out)  # a stale checkpoint of another run must not be resumed
-        frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
-        closing = build_loop_closing(dataset, None if args.no_loops else components)
-        if injection is not None:
-            injection.wrap_plugins(closing, dataset)
-    else:
-        if spec["components"] != header["spec"]["components"]:
-            raise CheckpointError(
-                args.out / checkpoint.HEADER_FILE,
-                f"the run config ({args.config or '--set options'}) changed since the checkpoint was made",
-            )
-        checkpoint.check_dataset(header, dataset, args.out)
-        images = checkpointer.images if checkpointer is not None else checkpoint.FrameImages()
-        resume = checkpoint.load_state(header, args.out, dataset, images)
-        frontend, closing = resume.frontend, resume.closing
-        print(f"resuming {args.out} after {header['frames']} frames (next frame {resume.next_index})")
-    for note in dataset.notes:
-        print(f"note: {note}")
-    if checkpointer is not None:
-        for name in (*OUTPUT_FILES, TOP_VIEW_FILE, APE_FILE):  # outputs appear when the run ends
-            (args.out / name).unlink(missing_ok=True)
-    viewer = (
-        RerunViewer(args.out / RRD_FILE, args.viewer_connect, camera=dataset.camera)
-        if args.viewer == "rerun"
-        else None
-    )
-    figures = run_odometry(
-        dataset,
-        frontend,
-        args.out,
-        loop_closing=closing,
-        max_frames=args.max_frames,
-        progress=not args.no_progress,
-        tolerance=args.tolerance,
-        config=describe(components, closing, args),
-        viewer=viewer,
-        checkpointer=checkpointer,
-        resume=resume,
-    )
-    print(f"run {frontend.name} on {dataset.root} ({dataset.format_name})")
-    print_figures(figures)
-    print(f"wrote {', '.join(str(args.out / f) for f in OUTPUT_FILES)}")
-    write_json(args.json, figures)
-    return 0

@@ -14,14 +14,18 @@ others; it gets no file, so the next run retries it.
 ``dask_client``: a ``LocalCluster`` of one single-threaded worker process per core (OpenCV and BLAS
 limited to one thread per worker, so workers do not compete for cores) unless ``scheduler`` gives
 the address of a running cluster (``dask scheduler`` / ``dask worker ADDRESS``). Jobs that write
-files besides their result (pipeline runs) need a folder all workers can reach.
+files besides their result (pipeline runs) need a folder all workers can reach. The LocalCluster
+listens on 127.0.0.1 only (scheduler, nanny, workers and their HTTP endpoints) and serves no
+dashboard unless ``ClusterOptions.dashboard`` asks for one (``--dashboard ADDRESS``).
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
+import re
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -30,13 +34,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from frontends.errors import InputFileError
+from frontends.errors import ConfigError, InputFileError
 
 JobSpec = Mapping[str, Any]
 JobResult = dict[str, Any]
 
 #: Environment of local worker processes: one thread per worker for every numeric library.
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: The only interface a LocalCluster listens on, unless a dashboard address says otherwise.
+LOCALHOST = "127.0.0.1"
+_DASHBOARD_ADDRESS = re.compile(r"(?P<host>[^\s:,]*):(?P<port>[0-9]{1,5})")
 
 
 def job_key(spec: JobSpec) -> str:
@@ -112,6 +119,21 @@ class ClusterOptions:
     workers: int | None = None
     #: Local workers as processes (True) or threads of this process (False, for tests).
     processes: bool = True
+    #: Where the local Dask dashboard listens, ``HOST:PORT`` (``:PORT``: every interface, port 0: any
+    #: free port); None: no dashboard. Not for ``scheduler``, which serves its own.
+    dashboard: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.dashboard is None:
+            return
+        if self.scheduler:
+            raise ConfigError(
+                "--dashboard applies to the local cluster only; the scheduler at --scheduler serves its own"
+            )
+        match = _DASHBOARD_ADDRESS.fullmatch(self.dashboard)
+        if match is None or int(match["port"]) > 65535:
+            shown = self.dashboard if len(self.dashboard) <= 60 else self.dashboard[:60] + "..."
+            raise ConfigError(f"--dashboard {shown!r}: expected HOST:PORT or :PORT (e.g. 127.0.0.1:8787)")
 
 
 def limit_threads() -> None:
@@ -131,16 +153,32 @@ def dask_client(options: ClusterOptions) -> Iterator[Any]:
         return
     workers = options.workers or os.cpu_count() or 1
     extra: dict[str, Any] = {"env": SINGLE_THREAD_ENV} if options.processes else {}
-    with (
-        LocalCluster(
+    try:
+        cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=options.processes,
-            dashboard_address=":0",
+            # tcp even for threads: with inproc:// Dask's HTTP endpoints have no host to copy and bind
+            # every interface. The scheduler always runs an HTTP server (health, metrics); without a
+            # dashboard it gets a free port on localhost rather than 8787.
+            host=LOCALHOST,
+            protocol="tcp://",
+            dashboard_address=options.dashboard or f"{LOCALHOST}:0",
+            scheduler_kwargs={"dashboard": options.dashboard is not None},
             **extra,
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+        )
+    except (OSError, RuntimeError) as exc:
+        # A dashboard host that does not resolve or is not this machine's fails inside Dask's start-up.
+        cause = exc if isinstance(exc, OSError) else exc.__cause__
+        if options.dashboard is None or not isinstance(cause, OSError):
+            raise
+        raise ConfigError(f"--dashboard {options.dashboard}: cannot listen there ({cause})") from None
+    with cluster, Client(cluster) as client:
+        if options.dashboard is not None:
+            everywhere = " (listening on every interface)" if options.dashboard.startswith(":") else ""
+            print(f"Dask dashboard: {cluster.dashboard_link}{everywhere}", flush=True)
+            if importlib.util.find_spec("bokeh") is None:
+                print("note: bokeh is not installed, so the dashboard only says to install it", flush=True)
         if options.processes:
             client.run(limit_threads)
         yield client

@@ -71,9 +71,10 @@ from eval.sweep import (
     run_jobs,
 )
 from frontends.cli_common import add_json_option, write_json
-from frontends.config import apply_mapping, config_to_dict, read_yaml_mapping
+from frontends.config import apply_mapping, config_to_dict, parse_override, read_yaml_mapping
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, SymbioError
+from frontends.safe_yaml import short_repr
 from frontends.synth import SynthConfig
 from frontends.synth.world import TrajectoryKind
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector
@@ -206,10 +207,9 @@ def load_experiment_config(
     config = apply_mapping(cls(), mapping, source=str(path), lines=lines)
     if not isinstance(entries, list) or not entries:
         raise ConfigError(f"{path}:{lines.get('datasets', 1)}: 'datasets' must be a non-empty list")
-    entry_lines = _sequence_item_lines(path, "datasets")
     datasets = []
     for index, item in enumerate(entries):
-        where = f"{path}:{entry_lines[index] if index < len(entry_lines) else lines.get('datasets', 1)}"
+        where = f"{path}:{lines.get(f'datasets.{index}', lines.get('datasets', 1))}"
         if not isinstance(item, dict):
             raise ConfigError(f"{where}: each dataset must be a mapping (name:, path: or synthetic: ...)")
         try:
@@ -219,7 +219,9 @@ def load_experiment_config(
             raise ConfigError(message if message.startswith(where) else f"{where}: {message}") from None
     names = [d.name for d in datasets]
     if len(set(names)) != len(names):
-        raise ConfigError(f"{path}: dataset names must be distinct, got {names}")
+        raise ConfigError(
+            f"{path}:{lines.get('datasets', 1)}: dataset names must be distinct, got {short_repr(names)}"
+        )
     changes: dict[str, Any] = {"datasets": tuple(datasets)}
     if grid is not None:
         if not isinstance(grid, dict) or not all(isinstance(v, list) and v for v in grid.values()):
@@ -227,22 +229,9 @@ def load_experiment_config(
         changes["grid"] = {str(k): list(v) for k, v in grid.items()}
     config = replace(config, **changes)
     for item in overrides:
-        key, sep, raw = item.partition("=")
-        if not sep:
-            raise ConfigError(f"override {item!r}: expected key=value")
-        config = apply_mapping(config, {key: yaml.safe_load(raw)}, source=f"override {item!r}")
+        nested, source = parse_override(item)
+        config = apply_mapping(config, nested, source=source)
     return config
-
-
-def _sequence_item_lines(path: Path, key: str) -> list[int]:
-    """1-based lines of the items of the top-level list ``key``."""
-    node = yaml.compose(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)
-    if not isinstance(node, yaml.MappingNode):
-        return []
-    for key_node, value in node.value:
-        if key_node.value == key and isinstance(value, yaml.SequenceNode):
-            return [item.start_mark.line + 1 for item in value.value]
-    return []
 
 
 # --- datasets ------------------------------------------------------------------------------------
@@ -411,7 +400,8 @@ def lcd_job(spec: JobSpec) -> JobResult:
 
 
 def pipeline_job(spec: JobSpec) -> JobResult:
-    from eval.run import LOOPS_FILE, Components, build_loop_closing, run_odometry
+    from eval.components import Components
+    from eval.run import LOOPS_FILE, build_loop_closing, run_odometry
     from frontends.base import FRONTENDS
 
     data = spec["dataset"]
@@ -848,6 +838,12 @@ def add_job_arguments(parser: argparse.ArgumentParser, config_help: str, repeats
         help="address of a running Dask scheduler (default: a LocalCluster of one worker per core)",
     )
     parser.add_argument("--workers", type=int, help="local workers (default: one per core)")
+    parser.add_argument(
+        "--dashboard",
+        metavar="ADDRESS",
+        help="serve the local cluster's Dask dashboard at HOST:PORT, e.g. 127.0.0.1:8787 (:8787 listens on "
+        "every interface, unauthenticated); default: no dashboard, everything on 127.0.0.1",
+    )
     add_json_option(parser)
 
 
@@ -888,7 +884,7 @@ def add_table_parsers(commands: Any) -> None:
 def run_table_command(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *([f"repeats={args.repeats}"] if args.repeats is not None else [])]
     config: TableConfig = load_experiment_config(TableConfig, args.config, overrides)
-    run = run_table(config, args.out, ClusterOptions(args.scheduler, args.workers))
+    run = run_table(config, args.out, ClusterOptions(args.scheduler, args.workers, dashboard=args.dashboard))
     figures = write_table_outputs(run, args.out)
     for name, reason in run.skipped.items():
         print(f"note: dataset {name} skipped: {reason}")
@@ -970,7 +966,9 @@ def run_sweep(config: SweepConfig, out: Path, cluster: ClusterOptions) -> tuple[
 def run_sweep_command(args: argparse.Namespace) -> int:
     overrides = [f"repeats={args.repeats}"] if args.repeats is not None else []
     config: SweepConfig = load_experiment_config(SweepConfig, args.config, overrides)
-    outcome, notes = run_sweep(config, args.out, ClusterOptions(args.scheduler, args.workers))
+    outcome, notes = run_sweep(
+        config, args.out, ClusterOptions(args.scheduler, args.workers, dashboard=args.dashboard)
+    )
     for note in notes:
         print(f"note: {note}")
     print((args.out / "sweep.md").read_text(encoding="utf-8"))

@@ -9,6 +9,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from frontends.errors import OutputError
+from frontends.safe_io import atomic_write_text, describe_os_error
+
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
@@ -23,10 +26,8 @@ def add_set_option(parser: argparse.ArgumentParser, help: str) -> None:
     )
 
 
-def write_json(path: str | Path | None, figures: Mapping[str, Any]) -> None:
-    """Write a flat JSON object of scalar figures (NaN/inf become null, numpy scalars plain numbers)."""
-    if path is None:
-        return
+def flat_json(figures: Mapping[str, Any]) -> str:
+    """A flat JSON object of scalar figures (NaN/inf become null, numpy scalars plain numbers)."""
     flat: dict[str, Any] = {}
     for key, value in figures.items():
         if hasattr(value, "item") and callable(value.item):
@@ -36,9 +37,20 @@ def write_json(path: str | Path | None, figures: Mapping[str, Any]) -> None:
         if isinstance(value, (Mapping, list, tuple)):
             raise TypeError(f"--json output must be flat; {key!r} is a {type(value).__name__}")
         flat[key] = value
+    return json.dumps(flat, indent=2, sort_keys=True) + "\n"
+
+
+def write_json(path: str | Path | None, figures: Mapping[str, Any]) -> None:
+    """Write ``flat_json(figures)`` to ``path`` (atomically; nothing when ``path`` is None)."""
+    if path is None:
+        return
+    text = flat_json(figures)
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(json.dumps(flat, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(target.parent, f"cannot create the folder ({describe_os_error(exc)})") from None
+    atomic_write_text(target, text)
 
 
 def print_figures(figures: Mapping[str, Any]) -> None:

@@ -15,9 +15,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
+from frontends import safe_yaml
 from frontends.errors import ConfigError
+from frontends.safe_yaml import short_repr
 
 T = TypeVar("T")
 
@@ -29,53 +29,68 @@ def load_config(cls: type[T], yaml_path: str | Path | None = None, overrides: Se
         mapping, lines = read_yaml_mapping(yaml_path)
         config = apply_mapping(config, mapping, source=str(yaml_path), lines=lines)
     for item in overrides:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"override {item!r}: expected key=value")
-        try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from None
-        nested: dict[str, Any] = {}
-        cursor = nested
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            cursor = cursor.setdefault(part, {})
-        cursor[parts[-1]] = value
-        config = apply_mapping(config, nested, source=f"override {item!r}")
+        nested, source = parse_override(item)
+        config = apply_mapping(config, nested, source=source)
     return config
 
 
+class Override(str):
+    """A ``key=value`` override standing for an entry of a YAML file: its errors name that file and line."""
+
+    where: str
+
+    def __new__(cls, text: str, where: str) -> Override:
+        item = super().__new__(cls, text)
+        item.where = where
+        return item
+
+    def __reduce__(self) -> tuple[type[Override], tuple[str, str]]:
+        # str's own pickling would call __new__ without ``where``.
+        return type(self), (str(self), self.where)
+
+
+_SURROGATE = re.compile("[\udc80-\udcff]")
+
+
+def parse_override(item: str) -> tuple[dict[str, Any], str]:
+    """``key=value`` (dotted keys reach nested configs; the value is YAML) as a nested mapping, and
+    the source to name in errors about it."""
+    source = item.where if isinstance(item, Override) else f"override {short_repr(item)}"
+    key, sep, raw = item.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"{source}: expected key=value")
+    try:
+        if _SURROGATE.search(raw):
+            # A file name that is not UTF-8 (a shell argument's bytes kept as lone surrogates): YAML
+            # cannot carry it, and a path is what such a value is, so it is taken as a string.
+            value: Any = raw
+        else:
+            value = safe_yaml.load(raw, with_lines=False)[0] if raw.strip() else ""
+    except safe_yaml.YamlInputError as exc:
+        raise ConfigError(f"{source}: {exc.reason}") from None
+    nested: dict[str, Any] = {}
+    cursor = nested
+    parts = key.strip().split(".")
+    for part in parts[:-1]:
+        cursor = cursor.setdefault(part, {})
+    cursor[parts[-1]] = value
+    return nested, source
+
+
 def read_yaml_mapping(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
-    """Read a YAML mapping and the 1-based line of every (dotted) key, for error messages."""
+    """Read a YAML mapping (bounded: ``frontends.safe_yaml``) and the 1-based line of every dotted
+    key (``a.b``; list items as ``a.0``), for error messages."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc})") from None
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise ConfigError(f"{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from None
+        data, lines = safe_yaml.load(safe_yaml.read_text(path))
+    except safe_yaml.YamlInputError as exc:
+        where = f"{path}:{exc.line}" if exc.line is not None else str(path)
+        raise ConfigError(f"{where}: {exc.reason}") from None
     if data is None:
         return {}, {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}:1: expected a mapping of config keys, got {type(data).__name__}")
-    lines: dict[str, int] = {}
-    _collect_key_lines(node, "", lines)
     return data, lines
-
-
-def _collect_key_lines(node: yaml.Node | None, prefix: str, lines: dict[str, int]) -> None:
-    if not isinstance(node, yaml.MappingNode):
-        return
-    for key_node, value_node in node.value:
-        key = f"{prefix}{key_node.value}"
-        lines[key] = key_node.start_mark.line + 1
-        _collect_key_lines(value_node, key + ".", lines)
 
 
 def apply_mapping(
@@ -96,18 +111,21 @@ def apply_mapping(
         where = f"{source}:{lines[dotted]}" if lines and dotted in lines else source
         if key not in fields:
             known = ", ".join(sorted(fields))
-            raise ConfigError(f"{where}: unknown key {dotted!r} for {type(config).__name__} (known: {known})")
+            raise ConfigError(
+                f"{where}: unknown key {short_repr(dotted)} for {type(config).__name__} (known: {known})"
+            )
         current = getattr(config, key)
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             if not isinstance(value, Mapping):
-                raise ConfigError(f"{where}: {dotted!r} must be a mapping")
+                raise ConfigError(f"{where}: {short_repr(dotted)} must be a mapping")
             changes[key] = apply_mapping(current, value, source, lines, prefix=dotted + ".")
         else:
-            changes[key] = coerce(value, hints[key], f"{where}: {dotted!r}")
-    return dataclasses.replace(config, **changes)
-
-
-_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+            changes[key] = coerce(value, hints[key], f"{where}: {short_repr(dotted)}")
+    try:
+        return dataclasses.replace(config, **changes)
+    except ConfigError as exc:  # a __post_init__ check (e.g. "repeats must be >= 1") knows no file
+        message = str(exc)
+        raise ConfigError(message if message.startswith(source) else f"{source}: {message}") from None
 
 
 def coerce(value: Any, annotation: Any, what: str) -> Any:
@@ -123,37 +141,35 @@ def coerce(value: Any, annotation: Any, what: str) -> Any:
                 return coerce(value, option, what)
             except ConfigError as exc:
                 errors.append(str(exc))
-        raise ConfigError(errors[0] if errors else f"{what}: invalid value {value!r}")
+        raise ConfigError(errors[0] if errors else f"{what}: invalid value {short_repr(value)}")
     if origin is typing.Literal:
         if value not in args:
-            raise ConfigError(f"{what}: must be one of {list(args)}, got {value!r}")
+            raise ConfigError(f"{what}: must be one of {list(args)}, got {short_repr(value)}")
         return value
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{what}: expected a list, got {value!r}")
+            raise ConfigError(f"{what}: expected a list, got {short_repr(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(coerce(v, args[0], what) for v in value)
         if len(value) != len(args):
             raise ConfigError(f"{what}: expected {len(args)} values, got {len(value)}")
         return tuple(coerce(v, a, what) for v, a in zip(value, args, strict=True))
     if annotation is float:
-        if isinstance(value, str):
-            # YAML 1.1 reads exponents without a dot ("1e-6") as strings.
-            value = float(value) if _EXPONENT.fullmatch(value.strip()) else value
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{what}: expected a number, got {value!r}")
-        return float(value)
+        number = safe_yaml.number(value)  # also "1e-6", which YAML 1.1 reads as a string
+        if number is None:
+            raise ConfigError(f"{what}: expected a number, got {short_repr(value)}")
+        return number
     if annotation is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{what}: expected an integer, got {value!r}")
+            raise ConfigError(f"{what}: expected an integer, got {short_repr(value)}")
         return value
     if annotation is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{what}: expected true or false, got {value!r}")
+            raise ConfigError(f"{what}: expected true or false, got {short_repr(value)}")
         return value
     if annotation is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{what}: expected a string, got {value!r}")
+            raise ConfigError(f"{what}: expected a string, got {short_repr(value)}")
         return value
     return value
 

@@ -6,7 +6,15 @@ fix it without reading a traceback from inside numpy or OpenCV.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+
+def display_path(path: str | Path) -> str:
+    """``path`` as printable text: the bytes of a name that is not UTF-8 as ``\\xNN`` escapes.
+
+    Python keeps such bytes as lone surrogates, which a UTF-8 stream (stdout, a log file) refuses."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
 
 
 class SymbioError(Exception):
@@ -20,7 +28,8 @@ class InputFileError(SymbioError):
         self.path = str(path)
         self.line = line
         self.reason = message
-        where = f"{self.path}:{line}" if line is not None else self.path
+        shown = display_path(self.path)
+        where = f"{shown}:{line}" if line is not None else shown
         super().__init__(f"{where}: {message}")
 
     def __reduce__(self) -> tuple[type[InputFileError], tuple[str, str, int | None]]:
@@ -39,6 +48,18 @@ class CalibrationError(InputFileError):
 
 class TrajectoryFileError(InputFileError):
     """A TUM/KITTI/EuRoC trajectory file is malformed."""
+
+
+class OutputError(SymbioError):
+    """An output file or folder cannot be written, or writing there would not be safe."""
+
+    def __init__(self, path: str | Path, message: str) -> None:
+        self.path = str(path)
+        self.reason = message
+        super().__init__(f"{display_path(self.path)}: {message}")
+
+    def __reduce__(self) -> tuple[type[OutputError], tuple[str, str]]:
+        return type(self), (self.path, self.reason)
 
 
 class ConfigError(SymbioError):

@@ -8,6 +8,7 @@ its path and line number; evo's own readers report neither. Writing uses evo's w
 from __future__ import annotations
 
 import logging
+import reprlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -60,7 +61,7 @@ def read_numeric_table(
             values = [float(f) for f in fields]
         except ValueError:
             bad = next(f for f in fields if not _is_float(f))
-            raise error(path, f"not a number: {bad!r}", number) from None
+            raise error(path, f"not a number: {reprlib.repr(bad)}", number) from None  # bounded: may be huge
         if not all(np.isfinite(values)):
             raise error(path, "non-finite value (nan or inf)", number)
         rows.append(values)

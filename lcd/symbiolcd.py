@@ -47,10 +47,9 @@ import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from sklearn.ensemble import RandomForestClassifier
 
 from frontends.config import load_config
 from frontends.errors import ConfigError, InputFileError
@@ -60,6 +59,9 @@ from lcd.label_matching import match_labels
 from lcd.objects.filtering import FilterConfig, filter_objects
 from lcd.vbow import DEFAULT_VOCABULARY
 from lcd.vocabulary import BowDatabase, Vocabulary, empty_bow
+
+if TYPE_CHECKING:
+    from sklearn.ensemble import RandomForestClassifier
 
 #: The training table shipped with the package (see ``lcd/data/README.md``).
 DEFAULT_TABLE = Path(__file__).resolve().parent / "data" / "symbiolcd_rf.npz"
@@ -246,6 +248,9 @@ def save_table(path: str | Path, table: TrainingTable, provenance: dict[str, Any
 
 
 def fit_forest(table: TrainingTable, config: SymbioLCDConfig) -> RandomForestClassifier:
+    # Imported here: scikit-learn costs ~120 MB, which commands that never fit a forest do not pay.
+    from sklearn.ensemble import RandomForestClassifier
+
     forest = RandomForestClassifier(
         n_estimators=config.n_estimators,
         max_depth=config.max_depth or None,

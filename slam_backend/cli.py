@@ -42,7 +42,7 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--sigmas",
-        type=lambda text: tuple(float(v) for v in text.split(",")),
+        type=_sigmas,
         help="comma-separated sigmas replacing every --g2o edge's noise model (group tangent order)",
     )
     parser.add_argument("--graph-format", choices=GRAPH_FORMATS, default="auto", help="format of --g2o")
@@ -81,6 +81,14 @@ def add_parser(subparsers: Any) -> None:
     )
     add_json_option(parser)
     parser.set_defaults(handler=run)
+
+
+def _sigmas(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        shown = text if len(text) <= 60 else text[:60] + "..."
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {shown!r}") from None
 
 
 def _read_trajectory(path: Path, fmt: str | None, times: Path | None) -> Trajectory:

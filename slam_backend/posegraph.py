@@ -50,7 +50,7 @@ import numpy as np
 
 from frontends.config import apply_mapping, config_to_dict
 from frontends.errors import ConfigError, InputFileError
-from frontends.registry import Registry
+from slam_backend import plugins
 from slam_backend.errors import PoseGraphError
 from slam_backend.lie import Mode, PoseGroup, pose_group
 from slam_backend.pcm import LoopMeasurement, OdometryChain, PairwiseConsistency
@@ -147,9 +147,8 @@ class PoseGraphBackend(Protocol):
     def save(self, path: str | Path) -> None: ...
 
 
-BACKENDS: Registry[type[PoseGraphBackend]] = Registry(
-    "pose-graph backend", "symbio.backends", {"gtsam": "slam_backend.posegraph:GtsamPoseGraph"}
-)
+# Defined where listing names needs no gtsam; re-exported here.
+BACKENDS = plugins.BACKENDS
 
 
 @dataclass

@@ -36,8 +36,8 @@ import pycolmap
 
 from frontends.config import load_config
 from frontends.errors import ConfigError
-from frontends.registry import Registry
 from frontends.types import CameraIntrinsics, Keyframe
+from slam_backend import plugins
 
 
 @dataclass(frozen=True)
@@ -77,9 +77,8 @@ class VerifierFactory(Protocol):
     ) -> Verifier: ...
 
 
-VERIFIERS: Registry[VerifierFactory] = Registry(
-    "verifier", "symbio.verifiers", {"pycolmap": "slam_backend.verify:create"}
-)
+# Defined where listing names needs no pycolmap; re-exported here.
+VERIFIERS = plugins.VERIFIERS
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ Tests that need the read-only shared data take the ``shared`` fixture and carry
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,16 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip_slow)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def checkpoint_key(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Checkpoints made by tests (and their subprocesses) are signed with a key of the session:
+    the user's ~/.config/symbiolcd2/checkpoint.key is never created or read."""
+    path = tmp_path_factory.mktemp("checkpoint_key") / "checkpoint.key"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("SYMBIO_CHECKPOINT_KEY", str(path))
+        yield path
 
 
 @pytest.fixture(scope="session")

@@ -1,14 +1,22 @@
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from frontends.config import config_to_dict, load_config
+from eval.components import load_components
+from eval.table import TableConfig, load_experiment_config
+from frontends.config import Override, config_to_dict, load_config
+from frontends.datasets.calib import read_intrinsics
 from frontends.errors import CalibrationError, ConfigError
 from frontends.registry import Registry
 from frontends.types import CameraIntrinsics
+from lcd.base import LOOP_DETECTORS
+from slam_backend.pipeline import LoopClosingConfig
+
+SMOKE_TABLE = Path(__file__).resolve().parent.parent / "eval" / "configs" / "smoke.yaml"
 
 
 @dataclass(frozen=True)
@@ -120,3 +128,124 @@ def test_camera_resize_scales_intrinsics() -> None:
     camera = CameraIntrinsics(500.0, 510.0, 320.0, 240.0, 640, 480)
     half = camera.with_size(320, 240)
     assert (half.fx, half.fy, half.cx, half.cy) == (250.0, 255.0, 160.0, 120.0)
+
+
+# --- bounded, strict YAML (issue 41): see also tests/test_fuzz_parsers.py for the alias bombs ------
+
+CALIB_BASE = "cx: 320\ncy: 240\nwidth: 640\nheight: 480\n"
+
+
+def test_duplicate_keys_name_both_lines(tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text("count: 1\ninner:\n  radius: 2\n  radius: 3\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml:4: duplicate key 'radius' \(lines 3 and 4\)"):
+        load_config(Outer, config)
+    calib = tmp_path / "cam.yaml"
+    calib.write_text("fx: 500\nfy: 500\nfx: 510\n" + CALIB_BASE)
+    with pytest.raises(CalibrationError, match=r"cam\.yaml:3: duplicate key 'fx' \(lines 1 and 3\)"):
+        read_intrinsics(calib)
+    with pytest.raises(ConfigError, match=r"override 'inner=\{radius: 1, radius: 2\}': duplicate key"):
+        load_config(Outer, None, ["inner={radius: 1, radius: 2}"])
+    # A merge ("<<") is not a duplicate: its keys are there to be overridden.
+    config.write_text("inner: {<<: {radius: 2, name: b}, name: c}\n")
+    assert load_config(Outer, config).inner == Inner(radius=2.0, name="c")
+
+
+def test_orb_slam_calib_with_a_word_names_the_key_line(tmp_path: Path) -> None:
+    path = tmp_path / "orb.yaml"
+    path.write_text(
+        "%YAML:1.0\n---\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\nCamera.cy: 240\n"
+        "Camera.k1: abc\nCamera.width: 640\nCamera.height: 480\n"
+    )
+    # Line 7 of the file: the "%YAML:1.0" header OpenCV writes is not dropped from the count.
+    with pytest.raises(
+        CalibrationError, match=r"orb\.yaml:7: 'Camera\.k1' must be a finite number, got 'abc'"
+    ):
+        read_intrinsics(path)
+    path.write_text("fx: 500\nfy: 500\ndistortion: [0.1, .nan, 0, 0]\n" + CALIB_BASE)
+    with pytest.raises(CalibrationError, match=r"orb\.yaml:3: 'distortion' must be a list of finite"):
+        read_intrinsics(path)
+    path.write_text("fx: 500\nfy: 500\n" + CALIB_BASE.replace("640", "640.5"))
+    with pytest.raises(CalibrationError, match=r"orb\.yaml:5: 'width' must be an integer"):
+        read_intrinsics(path)
+
+
+def test_calib_reads_exponents_as_config_does(tmp_path: Path) -> None:
+    """YAML 1.1 reads "5.25e2" as a string; ``--set fx=5.25e2`` took it, so does a calibration."""
+    path = tmp_path / "cam.yaml"
+    path.write_text("fx: 5.25e2\nfy: 5.3E2\ncx: 3.195e+2\ncy: 2.395e2\nwidth: 640\nheight: 480\n")
+    camera = read_intrinsics(path)
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (525.0, 530.0, 319.5, 239.5)
+    path.write_text("intrinsics: [5.25e2, 5.25e2, 320, 240]\nresolution: [640, 480]\n")
+    assert read_intrinsics(path).fx == 525.0
+
+
+def test_a_set_value_that_is_not_yaml_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match=r"override 'repeats=\[': invalid YAML"):
+        load_experiment_config(TableConfig, SMOKE_TABLE, ["repeats=["])
+    with pytest.raises(ConfigError, match=r"override 'sizes=\[1, 2': invalid YAML"):
+        load_config(Outer, None, ["sizes=[1, 2"])
+
+
+def test_run_config_errors_name_file_and_line(tmp_path: Path) -> None:
+    """``symbio run --config``: the sections become overrides that remember their file and line."""
+    path = tmp_path / "run.yaml"
+    path.write_text("detector:\n  name: vbow\n  threshold: abc\nloop_closing:\n  proposal_ratio: [1, 2]\n")
+    components = load_components(path, [], {})
+    with pytest.raises(ConfigError, match=r"run\.yaml:3: 'threshold': expected a number, got 'abc'"):
+        LOOP_DETECTORS.load(components.detector)(components.of("detector"))
+    with pytest.raises(ConfigError, match=r"run\.yaml:5: 'proposal_ratio': expected a number"):
+        load_config(LoopClosingConfig, None, components.of("loop_closing"))
+    # Command-line overrides are named as typed, section included.
+    components = load_components(None, ["detector.threshold=abc"], {})
+    with pytest.raises(ConfigError, match=r"--set 'detector\.threshold=abc': 'threshold': expected a number"):
+        LOOP_DETECTORS.load("vbow")(components.of("detector"))
+    path.write_text("frontend:\n  name: mono-vo\ndetector:\n  name: vbwo\n")
+    with pytest.raises(ConfigError, match=r"run\.yaml:4: unknown detector 'vbwo'; installed: .*vbow"):
+        load_components(path, [], {})
+
+
+def test_an_override_from_a_file_survives_pickling() -> None:
+    """Overrides travel to worker processes: the file and line must come along."""
+    item = Override("threshold=abc", "run.yaml:3")
+    copy = pickle.loads(pickle.dumps(item))
+    assert copy == "threshold=abc" and copy.where == "run.yaml:3"
+
+
+def test_error_messages_do_not_render_huge_values(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(f"count: '{'x' * 50_000}'\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml:1: 'count': expected an integer") as info:
+        load_config(Outer, path)
+    assert len(str(info.value)) < 200
+    path.write_text(f"ratio: [{', '.join(['1'] * 20_000)}]\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml:1: 'ratio': expected a number") as info:
+        load_config(Outer, path)
+    assert len(str(info.value)) < 200
+    path.write_text(f"fx: [{', '.join(['1'] * 20_000)}]\nfy: 500\n" + CALIB_BASE)
+    with pytest.raises(CalibrationError, match=r"c\.yaml:1: 'fx' must be a finite number") as info:
+        read_intrinsics(path)
+    assert len(str(info.value)) < 200
+
+
+def test_oversized_and_non_utf8_yaml_files(tmp_path: Path) -> None:
+    big = tmp_path / "big.yaml"
+    big.write_text("# padding\n" * 200_000)
+    with pytest.raises(ConfigError, match=r"big\.yaml: larger than 1048576 bytes"):
+        load_config(Outer, big)
+    with pytest.raises(CalibrationError, match=r"big\.yaml: larger than 1048576 bytes"):
+        read_intrinsics(big)
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"count: 1\nlabel: caf\xe9\n")
+    with pytest.raises(ConfigError, match=r"latin\.yaml:2: not UTF-8 text \(byte 0xe9\)"):
+        load_config(Outer, latin)
+
+
+def test_a_config_check_names_the_file_or_override(tmp_path: Path) -> None:
+    """``__post_init__`` checks know no file; ``apply_mapping`` adds where the value came from."""
+    path = tmp_path / "table.yaml"
+    path.write_text("repeats: 0\ndatasets: [{name: a, synthetic: loop}]\n")
+    with pytest.raises(ConfigError, match=r"table\.yaml: repeats must be >= 1"):
+        load_experiment_config(TableConfig, path)
+    with pytest.raises(ConfigError, match=r"override 'repeats=0': repeats must be >= 1"):
+        load_experiment_config(TableConfig, SMOKE_TABLE, ["repeats=0"])

@@ -25,8 +25,9 @@ from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
 from eval.cli import main as symbio_main
+from eval.components import load_components
 from eval.demo import synthetic_components
-from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, load_components, loop_truth
+from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, loop_truth
 from eval.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.base import TrackResult
 from frontends.synth.render import RenderedFrame, SceneRenderer
@@ -346,10 +347,10 @@ def test_a_bad_run_config_names_the_file(tmp_path: Path) -> None:
 
     bad = tmp_path / "run.yaml"
     bad.write_text("detector:\n  name: vbow\nverifer:\n  ratio: 0.7\n")
-    with pytest.raises(ConfigError, match=r"run\.yaml: unknown section 'verifer'"):
+    with pytest.raises(ConfigError, match=r"run\.yaml:3: unknown section 'verifer'"):
         load_components(bad, [], {})
     bad.write_text("detector: vbow\n")
-    with pytest.raises(ConfigError, match=r"run\.yaml: section 'detector' must be a mapping"):
+    with pytest.raises(ConfigError, match=r"run\.yaml:1: section 'detector' must be a mapping"):
         load_components(bad, [], {})
 
 

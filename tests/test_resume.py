@@ -1,11 +1,14 @@
-"""Checkpoint and resume of ``symbio run``: a real ``kill -9`` at a random point after a checkpoint,
-``symbio run --resume``, and the outputs of an uninterrupted run, byte for byte; corrupt, truncated
-and mismatched checkpoints fail naming the file; the pose graph's pickled log replays bit-identically.
+"""Checkpoint and resume of ``symbio run``: a real ``kill -9`` at a random point after a checkpoint
+of a run started with a relative dataset path, ``symbio run --resume`` from another directory, and
+the outputs of an uninterrupted run, byte for byte; corrupt, truncated and mismatched checkpoints
+fail naming the file; the pose graph's pickled log replays bit-identically. Forged and foreign
+checkpoints: ``test_checkpoint_security.py``.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import pickle
 import random
 import shutil
@@ -36,8 +39,16 @@ EVERY = 25
 KILL_DELAY = (0.0, 0.25)
 
 
+REPO = Path(__file__).resolve().parent.parent
+
+
 def symbio(*args: str) -> list[str]:
     return [sys.executable, "-m", "eval.cli", *args]
+
+
+def in_repo_env() -> dict[str, str]:
+    """The environment of a subprocess started outside the repository that runs this checkout."""
+    return {**os.environ, "PYTHONPATH": str(REPO)}
 
 
 def checkpointed_frames(out: Path) -> int:
@@ -48,10 +59,13 @@ def checkpointed_frames(out: Path) -> int:
 
 
 def kill_after_checkpoint(
-    command: list[str], out: Path, frames: int, delay: float, timeout: float = 120.0
+    command: list[str], out: Path, frames: int, delay: float, cwd: Path, timeout: float = 120.0
 ) -> None:
-    """Start ``command``, wait for the checkpoint of ``frames`` frames, then ``delay`` s, then SIGKILL it."""
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    """Start ``command`` in ``cwd``, wait for the checkpoint of ``frames`` frames, then ``delay`` s,
+    then SIGKILL it."""
+    process = subprocess.Popen(
+        command, cwd=cwd, env=in_repo_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         deadline = time.monotonic() + timeout
         while checkpointed_frames(out) < frames:
@@ -68,16 +82,17 @@ def kill_after_checkpoint(
 
 @pytest.fixture(scope="module")
 def killed_run(small_loop_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A checkpointed run of the small loop scene killed at a random point after a random checkpoint
-    (the seed is printed so a failure can be repeated)."""
+    """A checkpointed run of the small loop scene, started in the scene's parent folder with the
+    relative dataset path (issue 41), killed at a random point after a random checkpoint (the seed
+    is printed so a failure can be repeated)."""
     seed = random.SystemRandom().randrange(2**31)
     print(f"kill seed {seed}")
     draw = random.Random(seed)
     frames = EVERY * draw.randint(1, (3 * FRAMES) // (4 * EVERY))
     out = tmp_path_factory.mktemp("killed") / "run"
-    command = symbio("run", str(small_loop_scene), "--max-frames", str(FRAMES), "--no-progress")
+    command = symbio("run", small_loop_scene.name, "--max-frames", str(FRAMES), "--no-progress")
     command += ["--checkpoint-every", str(EVERY), "--out", str(out)]
-    kill_after_checkpoint(command, out, frames, draw.uniform(*KILL_DELAY))
+    kill_after_checkpoint(command, out, frames, draw.uniform(*KILL_DELAY), small_loop_scene.parent)
     yield out
 
 
@@ -107,8 +122,15 @@ def test_resume_after_kill_gives_the_uninterrupted_outputs(
     assert EVERY <= header["frames"] < FRAMES and header["frames"] % EVERY == 0
     # No output of the killed run can be mistaken for a final one: it wrote none.
     assert not any((run / name).exists() for name in COMPARED)
+    elsewhere = tmp_path / "elsewhere"  # resumed from another working directory
+    elsewhere.mkdir()
     resumed = subprocess.run(
-        symbio("run", "--resume", str(run), "--no-progress"), capture_output=True, text=True, timeout=300
+        symbio("run", "--resume", str(run), "--no-progress"),
+        cwd=elsewhere,
+        env=in_repo_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert f"after {header['frames']} frames" in resumed.stdout
@@ -159,18 +181,19 @@ def test_a_different_dataset_or_option_is_refused(
     shutil.copytree(small_loop_scene, other)
     error = resume_error(run, capsys, str(other))
     assert f"{run / HEADER_FILE}: the checkpoint was made with DATASET" in error
+    assert "if the dataset moved, give --dataset NEW_PATH" in error
     assert "the checkpoint was made with --max-frames" in resume_error(run, capsys, "--max-frames", "99")
     assert "--detector" in resume_error(run, capsys, "--detector", "vbow")
-    # The same folder with other contents (here: the last timestamp moved by 1 ms).
+    # The same data in another folder is the same dataset; with other contents (here: the last
+    # timestamp moved by 1 ms) it is not.
     check_dataset(read_header(run), open_dataset(small_loop_scene), run)
+    check_dataset(read_header(run), open_dataset(other), run)
     index = other / "rgb.txt"
     lines = index.read_text().splitlines(keepends=True)
     stamp, image = lines[-1].split()
     index.write_text("".join(lines[:-1]) + f"{float(stamp) + 0.001:.6f} {image}\n")
-    stored = read_header(run)
-    stored["dataset"]["root"] = str(other.resolve())
     with pytest.raises(CheckpointError, match=r"another dataset or dataset version \(sha256 "):
-        check_dataset(stored, open_dataset(other), run)
+        check_dataset(read_header(run), open_dataset(other), run)
     # Nothing was changed by the refusals: the checkpoint still resumes (checked in the first test).
     assert read_header(run)["frames"] >= EVERY
 

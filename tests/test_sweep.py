@@ -98,12 +98,122 @@ def test_unreadable_result_file_names_the_file(tmp_path: Path) -> None:
 
 
 def test_existing_scheduler_by_address(tmp_path: Path) -> None:
-    from dask.distributed import LocalCluster
-
     counter = tmp_path / "count.txt"
     specs = [{"x": x, "counter": str(counter)} for x in (1, 2)]
-    with LocalCluster(n_workers=1, processes=False, dashboard_address=":0") as cluster:
-        with dask_client(ClusterOptions(scheduler=cluster.scheduler_address)) as client:
+    # Not a LocalCluster with a dashboard: without bokeh, Dask then adds its "install bokeh" page to
+    # every later scheduler of this process (it appends to its config list), and the tests below see it.
+    with dask_client(ClusterOptions(workers=1, processes=False)) as cluster:
+        with dask_client(ClusterOptions(scheduler=cluster.scheduler.address)) as client:
             outcome = run_jobs(client, specs, square, ResultStore(tmp_path / "results"))
-        assert len(cluster.scheduler.workers) == 1
+        assert len(cluster.scheduler_info()["workers"]) == 1
     assert [r["value"] for r in outcome.results.values()] == [1, 4]
+
+
+def _listening() -> set[tuple[str, int]]:
+    """(address, port) of every TCP socket this process and its children listen on."""
+    import psutil
+
+    me = psutil.Process()
+    sockets = set()
+    for process in [me, *me.children(recursive=True)]:
+        try:
+            connections = process.net_connections(kind="tcp")
+        except psutil.NoSuchProcess:
+            continue
+        sockets |= {(c.laddr.ip, c.laddr.port) for c in connections if c.status == psutil.CONN_LISTEN}
+    return sockets
+
+
+def _serves_dashboard(port: int) -> bool:
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30):
+            return True
+    except urllib.error.HTTPError as error:
+        if error.code == 404:
+            return False
+        raise
+
+
+@pytest.mark.parametrize("processes", [True, False], ids=["processes", "threads"])
+def test_local_cluster_listens_on_localhost_only_and_has_no_dashboard(processes: bool) -> None:
+    before = _listening()
+    with dask_client(ClusterOptions(workers=1, processes=processes)) as client:
+        opened = _listening() - before
+        http_port = client.scheduler_info()["services"]["dashboard"]
+        # Scheduler, worker (and nanny), and the scheduler's health/metrics endpoint: all on localhost.
+        assert len(opened) >= 3
+        assert {address for address, _ in opened} == {"127.0.0.1"}
+        assert ("127.0.0.1", http_port) in opened
+        assert not _serves_dashboard(http_port)
+
+
+def test_dashboard_on_request_listens_where_asked(capsys: pytest.CaptureFixture[str]) -> None:
+    import dask
+    import distributed  # noqa: F401  (registers the config defaults read below)
+
+    before = _listening()
+    # A copy of Dask's route list, which a dashboard without bokeh appends to (see above).
+    routes = list(dask.config.get("distributed.scheduler.http.routes"))
+    options = ClusterOptions(workers=1, processes=False, dashboard="127.0.0.1:0")
+    with dask.config.set({"distributed.scheduler.http.routes": routes}), dask_client(options) as client:
+        opened = _listening() - before
+        port = client.scheduler_info()["services"]["dashboard"]
+        assert {address for address, _ in opened} == {"127.0.0.1"}
+        assert ("127.0.0.1", port) in opened
+        assert _serves_dashboard(port)
+    assert f"Dask dashboard: http://127.0.0.1:{port}/status" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"dashboard": "8787"}, "expected HOST:PORT"),
+        ({"dashboard": "localhost:99999"}, "expected HOST:PORT"),
+        ({"dashboard": "a:1:2"}, "expected HOST:PORT"),
+        ({"dashboard": "x" * 10_000}, r"'x{60}\.\.\.'"),
+        ({"dashboard": ":8787", "scheduler": "tcp://10.0.0.1:8786"}, "local cluster only"),
+    ],
+)
+def test_bad_dashboard_option_is_a_config_error(options: dict[str, Any], message: str) -> None:
+    from frontends.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message) as raised:
+        ClusterOptions(**options)
+    assert len(str(raised.value)) < 200
+
+
+def test_dashboard_that_cannot_listen_is_a_config_error() -> None:
+    from frontends.errors import ConfigError
+
+    # An address of TEST-NET-3 (RFC 5737), which no machine of ours has.
+    options = ClusterOptions(workers=1, processes=False, dashboard="203.0.113.1:0")
+    with pytest.raises(ConfigError, match=r"203\.0\.113\.1:0: cannot listen there"), dask_client(options):
+        pass
+
+
+@pytest.mark.parametrize("command", ["table", "sweep"])
+def test_dashboard_option_of_eval_commands(
+    command: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from eval import table
+    from eval.cli import main
+
+    seen: list[ClusterOptions] = []
+
+    class Started(Exception):
+        pass
+
+    def capture(config: Any, out: Path, cluster: ClusterOptions) -> Any:
+        seen.append(cluster)
+        raise Started
+
+    monkeypatch.setattr(table, "load_experiment_config", lambda *args: None)
+    monkeypatch.setattr(table, f"run_{command}", capture)
+    common = ["eval", command, "--config", "c.yaml", "--out", str(tmp_path)]
+    for extra in ([], ["--dashboard", "127.0.0.1:8787"]):
+        with pytest.raises(Started):
+            main([*common, *extra])
+    assert [options.dashboard for options in seen] == [None, "127.0.0.1:8787"]

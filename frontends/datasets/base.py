@@ -3,25 +3,37 @@
 Images are decoded one at a time while iterating, never all held in memory. An image that is
 missing, fails to decode or has another size than the camera's is skipped with a warning and
 recorded in ``Dataset.skipped`` (with the
-index file and line that listed it); ``strict=True`` turns that into a ``DatasetError``. The
-built-in readers reject index files whose timestamps do not increase when opening them; a frame
-whose timestamp is not after the previous frame's (a reader that does not check, e.g. a plugin) is
-skipped and recorded the same way, so a frontend never sees time run backwards.
+index file and line that listed it); ``strict=True`` turns that into a ``DatasetError``.
+
+Image files are untrusted: each is read as bytes (any file name works, including names that are
+not UTF-8) and its header (width, height; read by Pillow) is checked against the calibration
+before OpenCV decodes it, so a huge image of a few hundred kilobytes is skipped as "wrong image
+size" without being decoded. A file larger than its header's image could need (8 bytes a pixel
+plus ``IMAGE_METADATA_BYTES``), or in a format whose header is not read (``HEADER_FORMATS``), does
+not decode. Where no calibration gives the size yet (``first_image_size``) images above
+``MAX_IMAGE_PIXELS`` are refused.
+
+The built-in readers reject index files whose timestamps do not increase when opening them; a
+frame whose timestamp is not after the previous frame's (a reader that does not check, e.g. a
+plugin) is skipped and recorded the same way, so a frontend never sees time run backwards.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
+import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import IO, Any, ClassVar
 
 import cv2
 import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
+from PIL import Image
 
-from frontends.errors import CalibrationError, DatasetError
+from frontends.errors import CalibrationError, DatasetError, display_path
 from frontends.gt_loops import LoopLabelConfig, label_loop_pairs
 from frontends.types import CameraIntrinsics, Frame
 
@@ -39,8 +51,9 @@ class ImageEntry:
 
     def where(self) -> str:
         if self.listed_in is None:
-            return str(self.path)
-        return f"{self.listed_in}:{self.line}" if self.line is not None else str(self.listed_in)
+            return display_path(self.path)
+        listed_in = display_path(self.listed_in)
+        return f"{listed_in}:{self.line}" if self.line is not None else listed_in
 
 
 @dataclass(frozen=True)
@@ -62,9 +75,105 @@ SKIP_CAUSES = (
 )
 
 
-def decode_image(path: Path) -> np.ndarray | None:
-    """Read an image as 8-bit grey or BGR; None when it is missing or does not decode."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+#: Largest image decoded when no calibration gives the size to expect: 100 megapixels, above any
+#: camera a monocular SLAM run uses; decoding more takes gigabytes for a file of a few hundred KB.
+MAX_IMAGE_PIXELS = 100_000_000
+#: Bytes an image file may hold beyond 8 a pixel (16-bit RGBA stored uncompressed, the most any
+#: encoding of the image needs): room for metadata such as EXIF, ICC profiles and thumbnails.
+IMAGE_METADATA_BYTES = 16 << 20
+#: Pillow formats whose header is read before decoding: those OpenCV decodes to 8 or 16 bits.
+#: A file in another format (PAM, PFM, HDR, EXR) is skipped as undecodable.
+HEADER_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "PPM", "WEBP", "JPEG2000", "GIF", "SUN", "AVIF")
+
+
+class ImageSkipped(Exception):
+    """Why an image file is not used: ``cause`` (one of ``SKIP_CAUSES``) and a reason naming it."""
+
+    def __init__(self, cause: str, reason: str) -> None:
+        super().__init__(reason)
+        self.cause = cause
+        self.reason = reason
+
+
+@functools.cache
+def _header_formats() -> tuple[str, ...]:
+    Image.init()  # a format Pillow was built without (e.g. AVIF) is left out, not a KeyError
+    return tuple(name for name in HEADER_FORMATS if name in Image.OPEN)
+
+
+def _header_size(handle: IO[bytes], shown: str) -> tuple[int, int] | None:
+    """(width, height) from the header of the image file open in ``handle``, without decoding it;
+    None when the header declares more pixels than Pillow tells the size of (its decompression-bomb
+    limit, 179 megapixels by default)."""
+    try:
+        with warnings.catch_warnings():
+            # Sizes are checked here, and a damaged file is reported as skipped, not as a warning.
+            warnings.simplefilter("ignore")
+            with Image.open(handle, formats=_header_formats()) as header:
+                width, height = header.size
+    except Image.DecompressionBombError:
+        return None
+    except Exception as exc:  # any failure of a parser fed untrusted bytes means: does not decode
+        if isinstance(exc, Image.UnidentifiedImageError):
+            detail = "not an image format the readers decode"
+        else:  # Pillow's messages may quote the file name: printable, and short
+            detail = display_path(f"{type(exc).__name__}: {exc}")[:120]
+        raise ImageSkipped("undecodable image", f"image does not decode ({detail}): {shown}") from None
+    return int(width), int(height)
+
+
+def load_image(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """The image file at ``path`` as 8-bit grey or BGR, its header checked before it is decoded
+    against ``size`` (width, height) or, without ``size``, against ``MAX_IMAGE_PIXELS``.
+
+    Raises ``ImageSkipped`` when the file is missing, does not decode or has another size."""
+    shown = display_path(path)
+    try:
+        # Bytes I/O, not cv2.imread: it crashes on a file name that is not UTF-8.
+        handle = open(path, "rb")  # noqa: SIM115 (closed by the with block below)
+    except (FileNotFoundError, ValueError):  # ValueError: a NUL byte, which no file name holds
+        raise ImageSkipped("missing image", f"missing image file: {shown}") from None
+    except OSError as exc:
+        raise ImageSkipped("undecodable image", f"image does not decode ({exc.strerror}): {shown}") from None
+    with handle:
+        declared = _header_size(handle, shown)
+        if declared is None:
+            found = f"larger than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} megapixels"
+        elif size is not None:
+            found = f"{declared[0]}x{declared[1]}"
+        else:
+            found = f"{declared[0]}x{declared[1]} ({declared[0] * declared[1] / 1e6:.0f} megapixels)"
+        if size is not None and declared != size:
+            expected = f"{size[0]}x{size[1]}"
+            reason = f"image is {found}, the camera's calibration is for {expected}: {shown}"
+            raise ImageSkipped("wrong image size", reason)
+        if declared is None or (size is None and declared[0] * declared[1] > MAX_IMAGE_PIXELS):
+            cap = f"{MAX_IMAGE_PIXELS / 1e6:.0f} megapixels"
+            reason = f"image is {found}, more than the {cap} an image may have without a calibration: {shown}"
+            raise ImageSkipped("wrong image size", reason)
+        width, height = declared
+        limit = 8 * width * height + IMAGE_METADATA_BYTES
+        handle.seek(0)
+        data = handle.read(limit + 1)
+    if len(data) > limit:
+        reason = f"the file has more than the {limit} bytes a {width}x{height} image needs"
+        raise ImageSkipped("undecodable image", f"image does not decode ({reason}): {shown}")
+    try:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        image = None
+    image = _eight_bit(image)
+    if image is None:
+        raise ImageSkipped("undecodable image", f"image does not decode: {shown}")
+    if size is not None and (image.shape[1], image.shape[0]) != size:  # a header that lied
+        found = f"{image.shape[1]}x{image.shape[0]}"
+        reason = f"image is {found}, the camera's calibration is for {size[0]}x{size[1]}: {shown}"
+        raise ImageSkipped("wrong image size", reason)
+    return image
+
+
+def _eight_bit(image: np.ndarray | None) -> np.ndarray | None:
+    """A decoded image as 8-bit grey or BGR; None for an empty or non-integer one."""
     if image is None or image.size == 0:
         return None
     if image.dtype == np.uint16:  # 16-bit PNG greyscale cameras: keep the high byte
@@ -76,6 +185,16 @@ def decode_image(path: Path) -> np.ndarray | None:
     elif image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     return image
+
+
+def decode_image(path: Path) -> np.ndarray | None:
+    """Read an image as 8-bit grey or BGR; None when it is missing, does not decode or is larger
+    than ``MAX_IMAGE_PIXELS`` (``load_image`` says why)."""
+    try:
+        return load_image(path)
+    except ImageSkipped as skipped:
+        log.debug("%s", skipped.reason)
+        return None
 
 
 def associate_nearest(query: np.ndarray, reference: np.ndarray, max_difference: float) -> np.ndarray:
@@ -142,19 +261,11 @@ class Dataset:
     def read_image(self, index: int) -> np.ndarray | None:
         """Decode frame ``index``; on failure record it as skipped (or raise when strict)."""
         entry = self.entries[index]
-        image = decode_image(entry.path)
-        if image is None:
-            missing = not entry.path.exists()
-            reason = "missing image file" if missing else "image does not decode"
-            cause = "missing image" if missing else "undecodable image"
-            self._skip(index, entry.where(), f"{reason}: {entry.path}", cause)
-        elif (image.shape[1], image.shape[0]) != (self.camera.width, self.camera.height):
-            size = f"{image.shape[1]}x{image.shape[0]}"
-            expected = f"{self.camera.width}x{self.camera.height}"
-            reason = f"image is {size}, the camera's calibration is for {expected}: {entry.path}"
-            self._skip(index, entry.where(), reason, "wrong image size")
+        try:
+            return load_image(entry.path, (self.camera.width, self.camera.height))
+        except ImageSkipped as skipped:
+            self._skip(index, entry.where(), skipped.reason, skipped.cause)
             return None
-        return image
 
     def _skip(self, index: int, where: str, reason: str, cause: str) -> None:
         if self.strict:
@@ -215,7 +326,7 @@ class Dataset:
         pairs, source = self.loop_pairs(config)
         return {
             "format": self.format_name,
-            "path": str(self.root),
+            "path": display_path(self.root),
             "frames": len(self),
             "duration": round(self.duration, 6),
             "width": self.camera.width,
@@ -225,7 +336,7 @@ class Dataset:
             "cx": self.camera.cx,
             "cy": self.camera.cy,
             "distorted": self.camera.is_distorted,
-            "intrinsics_source": self.camera.source,
+            "intrinsics_source": display_path(self.camera.source),
             "has_groundtruth": self.has_groundtruth,
             "gt_poses": 0
             if self.gt_poses is None
@@ -246,21 +357,30 @@ def every_period(frames: Iterable[Frame], period: float) -> Iterator[Frame]:
 
 
 def first_image_size(entries: Sequence[ImageEntry], tries: int = 5) -> tuple[int, int]:
-    """(width, height) of the first decodable image among the first few entries."""
+    """(width, height) of the first decodable image among the first few entries; an image above
+    ``MAX_IMAGE_PIXELS`` is an error (not decoded): it would set the size every frame must have."""
+    reasons = []
     for entry in entries[:tries]:
-        image = decode_image(entry.path)
-        if image is not None:
-            return image.shape[1], image.shape[0]
+        try:
+            image = load_image(entry.path)
+        except ImageSkipped as skipped:
+            if skipped.cause == "wrong image size":  # without an expected size: too large
+                raise DatasetError(entry.where(), skipped.reason) from None
+            reasons.append(skipped.reason)
+            continue
+        return image.shape[1], image.shape[0]
     where = entries[0].where() if entries else "dataset"
-    raise DatasetError(where, f"none of the first {min(tries, len(entries))} images decodes")
+    first = f" (first: {reasons[0]})" if reasons else ""
+    raise DatasetError(where, f"none of the first {min(tries, len(entries))} images decodes{first}")
 
 
 def check_camera_size(camera: CameraIntrinsics, size: tuple[int, int], root: Path) -> CameraIntrinsics:
     """Fail clearly when the calibration was made for another resolution than the images have."""
     if (camera.width, camera.height) != size:
         raise CalibrationError(
-            camera.source or root,
-            f"calibration is for {camera.width}x{camera.height} images but {root} has {size[0]}x{size[1]}",
+            camera.source or display_path(root),
+            f"calibration is for {camera.width}x{camera.height} images but {display_path(root)} has "
+            f"{size[0]}x{size[1]}",
         )
     return camera
 
@@ -269,13 +389,13 @@ def list_images(folder: Path) -> list[Path]:
     """Image files of a folder in name order."""
     suffixes = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
     if not folder.is_dir():
-        raise DatasetError(folder, "image folder not found")
+        raise DatasetError(display_path(folder), "image folder not found")
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes and p.is_file())
 
 
 def require_file(path: Path, what: str) -> Path:
     if not path.is_file():
-        raise DatasetError(path, f"{what} not found")
+        raise DatasetError(display_path(path), f"{what} not found")
     return path
 
 
@@ -285,10 +405,10 @@ def check_listed_images_exist(entries: Sequence[ImageEntry], strict: bool) -> No
     if not missing:
         return
     if strict:
-        raise DatasetError(missing[0].where(), f"listed image not found: {missing[0].path}")
+        raise DatasetError(missing[0].where(), f"listed image not found: {display_path(missing[0].path)}")
     log.warning(
         "%d listed images are missing (first: %s, %s); they will be skipped",
         len(missing),
         missing[0].where(),
-        missing[0].path,
+        display_path(missing[0].path),
     )

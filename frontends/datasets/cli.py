@@ -8,20 +8,31 @@ from typing import Any
 
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import load_config
-from frontends.datasets import DATASET_FORMATS, open_dataset
+from frontends.datasets import DATASET_FORMATS, SYMLINK_LOOP, open_dataset, unreachable_reason
+from frontends.errors import display_path
 from frontends.gt_loops import LoopLabelConfig
+
+
+def input_path(text: str) -> Path:
+    """An input path argument, refused when it is a symbolic link loop: ``Path.resolve()`` raises
+    RuntimeError on one (Python < 3.13) where a command resolves paths before reading them. A missing
+    path is left to the reader, which names it the same way."""
+    path = Path(text)
+    if unreachable_reason(path) == SYMLINK_LOOP:
+        raise argparse.ArgumentTypeError(f"{display_path(path)}: {SYMLINK_LOOP}")
+    return path
 
 
 def add_dataset_arguments(parser: argparse.ArgumentParser, *, path_optional: bool = False) -> None:
     """The dataset options every command that reads a dataset takes (``path_optional``: the command
     can take the dataset from elsewhere, e.g. ``symbio run --resume``)."""
     parser.add_argument(
-        "path", type=Path, nargs="?" if path_optional else None, help="dataset folder (or video file)"
+        "path", type=input_path, nargs="?" if path_optional else None, help="dataset folder (or video file)"
     )
     parser.add_argument(
         "--format", dest="fmt", choices=DATASET_FORMATS.names(), help="layout (default: detect)"
     )
-    parser.add_argument("--calib", type=Path, help="intrinsics YAML (overrides the dataset's own)")
+    parser.add_argument("--calib", type=input_path, help="intrinsics YAML (overrides the dataset's own)")
     parser.add_argument("--strict", action="store_true", help="an image that fails to decode is an error")
 
 
@@ -58,7 +69,7 @@ def run_info(args: argparse.Namespace) -> int:
         figures["frames_decoded"] = decoded
         figures["frames_skipped"] = len(dataset.skipped)
     for note in dataset.notes:
-        print(f"note: {note}")
+        print(f"note: {display_path(note)}")  # notes may quote file names that are not UTF-8
     print_figures(figures)
     write_json(args.json, figures)
     return 0

@@ -8,12 +8,16 @@
   timestamp (ns), body position p_RS_R and orientation q_RS (w x y z); EuRoC adds velocities and
   biases (17 columns). A repeated timestamp keeps its first row, as for TUM ground truth. The
   camera pose is ``T_WB @ T_BS`` with ``T_BS`` (body -> camera) from sensor.yaml; without
-  sensor.yaml (``--calib`` given) T_BS is the identity, noted in ``notes``. Each image takes the
-  nearest ground-truth sample within 0.01 s (the ground truth is 200 Hz).
+  sensor.yaml (``--calib`` given) T_BS is the identity, noted in ``notes``. ``T_BS`` must be
+  rigid: last row ``0 0 0 1`` and a rotation with ``R Rᵀ = I`` and ``det R = +1`` within
+  ``T_BS_TOLERANCE`` (Kalibr prints about 10 digits). Each image takes the nearest ground-truth
+  sample within 0.01 s (the ground truth is 200 Hz).
 """
 
 from __future__ import annotations
 
+import re
+import reprlib
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +29,7 @@ from frontends.datasets.base import (
     associate_nearest,
     check_camera_size,
     check_listed_images_exist,
+    display_path,
     first_image_size,
 )
 from frontends.datasets.calib import intrinsics_from_mapping, read_intrinsics, read_yaml_file
@@ -34,6 +39,8 @@ from frontends.types import CameraIntrinsics
 
 #: Maximum image/ground-truth time difference for association (s).
 MAX_GT_TIME_DIFFERENCE = 0.01
+#: Largest deviation of T_BS's rotation from orthonormal (max |R Rᵀ - I|, |det R - 1|).
+T_BS_TOLERANCE = 1e-3
 GROUNDTRUTH_CSV = Path("state_groundtruth_estimate0") / "data.csv"
 
 
@@ -46,10 +53,12 @@ def mav0_folder(root: Path) -> Path | None:
 
 def read_image_list(csv: Path) -> list[ImageEntry]:
     """``data.csv`` of a camera: ``timestamp_ns,filename`` lines, images in the sibling ``data/``."""
+    shown = display_path(csv)
     try:
-        lines = csv.read_text(encoding="utf-8-sig").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(csv, f"cannot read ({exc})") from None
+        # surrogateescape: a name that is not UTF-8 becomes the str os.fsdecode gives the file.
+        lines = csv.read_text(encoding="utf-8-sig", errors="surrogateescape").splitlines()
+    except OSError as exc:
+        raise DatasetError(shown, f"cannot read ({exc.strerror})") from None
     entries: list[ImageEntry] = []
     for number, raw in enumerate(lines, start=1):
         line = raw.strip()
@@ -57,31 +66,61 @@ def read_image_list(csv: Path) -> list[ImageEntry]:
             continue
         fields = [f.strip() for f in line.split(",")]
         if len(fields) != 2 or not fields[1]:
-            raise DatasetError(csv, f"expected 'timestamp_ns,filename', found {line!r}", number)
+            raise DatasetError(shown, f"expected 'timestamp_ns,filename', found {reprlib.repr(line)}", number)
         try:
             stamp_ns = int(fields[0])
         except ValueError:
-            raise DatasetError(csv, f"timestamp is not an integer (ns): {fields[0]!r}", number) from None
+            raise DatasetError(
+                shown, f"timestamp is not an integer (ns): {reprlib.repr(fields[0])}", number
+            ) from None
         entries.append(ImageEntry(stamp_ns * 1e-9, csv.parent / "data" / fields[1], csv, number))
     if not entries:
-        raise DatasetError(csv, "lists no images")
+        raise DatasetError(shown, "lists no images")
     stamps = np.array([e.timestamp for e in entries])
-    check_increasing(csv, stamps, np.array([e.line for e in entries]), DatasetError)
+    check_increasing(shown, stamps, np.array([e.line for e in entries]), DatasetError)
     return entries
 
 
+def _key_line(path: Path, key: str) -> int | None:
+    """The 1-based line where ``key:`` starts a line of the YAML file (for error messages)."""
+    pattern = re.compile(rf"{re.escape(key)}\s*:")  # top level: not indented
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return None
+    return next((number for number, line in enumerate(lines, start=1) if pattern.match(line)), None)
+
+
 def read_body_to_sensor(sensor_yaml: Path) -> np.ndarray:
-    """``T_BS`` of a Kalibr sensor.yaml (``{cols: 4, rows: 4, data: [16 numbers]}``)."""
+    """``T_BS`` of a Kalibr sensor.yaml (``{cols: 4, rows: 4, data: [16 numbers]}``), checked rigid."""
     value = read_yaml_file(sensor_yaml).get("T_BS")
     data = value.get("data") if isinstance(value, dict) else value
+    line = _key_line(sensor_yaml, "T_BS")
     if not isinstance(data, list) or len(data) != 16:
-        raise CalibrationError(sensor_yaml, f"T_BS must be a 4x4 matrix (16 numbers in 'data'): {value!r}")
+        raise CalibrationError(
+            sensor_yaml, f"T_BS must be a 4x4 matrix (16 numbers in 'data'): {reprlib.repr(value)}", line
+        )
     try:
         matrix = np.array([float(v) for v in data]).reshape(4, 4)
-    except (TypeError, ValueError):
-        raise CalibrationError(sensor_yaml, f"T_BS has a value that is not a number: {data!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(
+            sensor_yaml, f"T_BS has a value that is not a number: {reprlib.repr(data)}", line
+        ) from None
     if not np.isfinite(matrix).all() or not np.allclose(matrix[3], [0, 0, 0, 1]):
-        raise CalibrationError(sensor_yaml, f"T_BS is not a rigid transform: {matrix.tolist()}")
+        rows = np.array2string(matrix, precision=6, separator=" ", max_line_width=200)
+        raise CalibrationError(
+            sensor_yaml, f"T_BS is not a rigid transform (last row must be 0 0 0 1): {rows}", line
+        )
+    rotation = matrix[:3, :3]
+    orthogonality = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+    determinant = float(np.linalg.det(rotation))
+    if orthogonality > T_BS_TOLERANCE or abs(determinant - 1.0) > T_BS_TOLERANCE:
+        raise CalibrationError(
+            sensor_yaml,
+            f"T_BS is not a rigid transform: its rotation has max |R Rᵀ - I| = {orthogonality:.3g} and "
+            f"det R = {determinant:.6g} (a rotation has 0 and +1, tolerance {T_BS_TOLERANCE:g})",
+            line,
+        )
     return matrix
 
 
@@ -114,7 +153,9 @@ class EurocDataset(Dataset):
     def open(cls, root: Path, *, calib: Path | None = None, strict: bool = False) -> EurocDataset:
         mav0 = mav0_folder(root)
         if mav0 is None:
-            raise DatasetError(root / "mav0" / "cam0" / "data.csv", "not found: not a EuRoC sequence")
+            raise DatasetError(
+                display_path(root / "mav0" / "cam0" / "data.csv"), "not found: not a EuRoC sequence"
+            )
         entries = read_image_list(mav0 / "cam0" / "data.csv")
         check_listed_images_exist(entries, strict)
         size = first_image_size(entries)
@@ -127,7 +168,7 @@ class EurocDataset(Dataset):
         elif sensor_yaml.is_file():
             camera = intrinsics_from_mapping(read_yaml_file(sensor_yaml), sensor_yaml, size)
         else:
-            raise CalibrationError(sensor_yaml, "not found (pass --calib intrinsics.yaml)")
+            raise CalibrationError(display_path(sensor_yaml), "not found (pass --calib intrinsics.yaml)")
         camera = check_camera_size(camera, size, root)
 
         gt_poses = None
@@ -137,7 +178,9 @@ class EurocDataset(Dataset):
                 body_to_camera = read_body_to_sensor(sensor_yaml)
             else:
                 body_to_camera = np.eye(4)
-                notes.append(f"{sensor_yaml} not found: ground truth is the body pose (T_BS = identity)")
+                notes.append(
+                    f"{display_path(sensor_yaml)} not found: ground truth is the body pose (T_BS = identity)"
+                )
             gt_stamps, body_poses = read_groundtruth(gt_csv)
             stamps = np.array([e.timestamp for e in entries])
             nearest = associate_nearest(stamps, gt_stamps, MAX_GT_TIME_DIFFERENCE)
@@ -149,5 +192,5 @@ class EurocDataset(Dataset):
                     f"{MAX_GT_TIME_DIFFERENCE} s"
                 )
         else:
-            notes.append(f"no ground truth ({gt_csv} not found)")
+            notes.append(f"no ground truth ({display_path(gt_csv)} not found)")
         return cls(root, camera, entries, gt_poses=gt_poses, strict=strict, notes=notes)

@@ -12,8 +12,9 @@ Image folder: the image files directly in the folder. Timestamps, first match wi
 - otherwise the frames are in name order, ``1/30`` s apart. Integer names (``000042.png``) count
   as frame numbers, not seconds.
 
-Video: frames are decoded in order with OpenCV while iterating. Timestamps are ``index / fps``
-(``CAP_PROP_FPS``; 30 when the file reports none). The frame count is the container's
+Video: frames are decoded in order with OpenCV while iterating (a video whose path is not UTF-8 is
+refused with a ``DatasetError``: OpenCV's video reader crashes on such a name). Timestamps are
+``index / fps`` (``CAP_PROP_FPS``; 30 when the file reports none). The frame count is the container's
 (``CAP_PROP_FRAME_COUNT``, counted by grabbing every frame when it reports none); frames it
 announces that do not decode are recorded in ``skipped``. ``read_image(i)`` seeks with
 ``CAP_PROP_POS_FRAMES``, which is slow and can land near rather than on frame i with inter-frame
@@ -25,6 +26,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -36,6 +38,7 @@ from frontends.datasets.base import (
     ImageEntry,
     SkippedFrame,
     check_camera_size,
+    display_path,
     first_image_size,
     list_images,
 )
@@ -55,7 +58,8 @@ def _camera(calib: Path | None, found: Path | None, size: tuple[int, int], where
     path = calib or found
     if path is None:
         raise CalibrationError(
-            where, "no camera intrinsics: pass --calib intrinsics.yaml (fx fy cx cy width height distortion)"
+            display_path(where),
+            "no camera intrinsics: pass --calib intrinsics.yaml (fx fy cx cy width height distortion)",
         )
     return check_camera_size(read_intrinsics(path, size), size, where)
 
@@ -82,21 +86,27 @@ class ImageFolderDataset(Dataset):
     def open(cls, root: Path, *, calib: Path | None = None, strict: bool = False) -> ImageFolderDataset:
         images = list_images(root)
         if not images:
-            raise DatasetError(root, "no image files in this folder")
+            raise DatasetError(display_path(root), "no image files in this folder")
         notes: list[str] = []
         times_file = root / "times.txt"
         name_stamps = [s for s in (_name_timestamp(p) for p in images) if s is not None]
         if times_file.is_file():
             stamps = read_times(times_file, DatasetError)
             if len(stamps) != len(images):
-                raise DatasetError(times_file, f"{len(stamps)} timestamps but {len(images)} images in {root}")
+                raise DatasetError(
+                    display_path(times_file),
+                    f"{len(stamps)} timestamps but {len(images)} images in {display_path(root)}",
+                )
             entries = [ImageEntry(float(t), p) for t, p in zip(stamps, images, strict=True)]
         elif len(name_stamps) == len(images):
             by_time = sorted(zip(name_stamps, images, strict=True))
             entries = [ImageEntry(s, p) for s, p in by_time]
             for previous, entry in itertools.pairwise(entries):
                 if entry.timestamp == previous.timestamp:
-                    raise DatasetError(entry.path, f"same file-name timestamp as {previous.path.name}")
+                    raise DatasetError(
+                        display_path(entry.path),
+                        f"same file-name timestamp as {display_path(previous.path.name)}",
+                    )
             notes.append("timestamps from the file names (s)")
         else:
             entries = [ImageEntry(i / DEFAULT_FPS, p) for i, p in enumerate(images)]
@@ -141,7 +151,14 @@ class VideoDataset(Dataset):
 
     @staticmethod
     def _capture(path: Path) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(path))
+        try:
+            name = os.fsencode(path).decode("utf-8")
+        except UnicodeDecodeError:  # cv2.VideoCapture crashes the process on such a name
+            raise DatasetError(
+                display_path(path),
+                "OpenCV cannot open a video whose path is not UTF-8: rename it or link it under a UTF-8 name",
+            ) from None
+        capture = cv2.VideoCapture(name)
         if not capture.isOpened():
             capture.release()
             raise DatasetError(path, "OpenCV cannot open this video (unsupported codec or not a video)")

@@ -11,12 +11,17 @@ image_2), ``calib.txt``, ``poses.txt`` and optionally ``times.txt``.
 ``calib.txt`` lines are 12 numbers (a 3x4 projection matrix, row-major), either prefixed with a
 key (``P0: ...``, as KITTI ships them) or bare, in which case line k is ``P<k-1>``. The left camera
 uses P0 (``image_0``/``image_l``) or P2 (``image_2``); KITTI images are rectified, so the camera has
-no distortion. ``--calib`` replaces calib.txt. Without ``times.txt`` frames are 0.1 s apart (KITTI's
-10 Hz). Poses are camera-to-world, one line per image.
+no distortion. The matrix used must be ``K [I | t]`` with ``K`` upper triangular without skew:
+rows ``fx 0 cx tx``, ``0 fy cy ty``, ``0 0 1 tz`` (``P0`` has ``t = 0``; the other cameras of a rig
+have their baseline there, which monocular intrinsics do not use, so ``t`` is not checked).
+Anything else (skew, a rotated or scaled third row) is a ``CalibrationError`` naming the line.
+``--calib`` replaces calib.txt. Without ``times.txt`` frames are 0.1 s apart (KITTI's 10 Hz).
+Poses are camera-to-world, one line per image.
 """
 
 from __future__ import annotations
 
+import reprlib
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +30,7 @@ from frontends.datasets.base import (
     Dataset,
     ImageEntry,
     check_camera_size,
+    display_path,
     first_image_size,
     list_images,
 )
@@ -37,17 +43,25 @@ from frontends.types import CameraIntrinsics
 IMAGE_FOLDERS = {"image_0": "P0", "image_l": "P0", "image_2": "P2"}
 #: KITTI's camera rate, used when there is no times.txt.
 KITTI_FPS = 10.0
+#: Largest entry allowed where a pinhole projection matrix has 0 (skew, below the diagonal, third
+#: row), relative to the focal length; KITTI writes exact zeros.
+PROJECTION_TOLERANCE = 1e-6
 
 
 def read_projection_matrices(path: Path) -> dict[str, np.ndarray]:
     """The 3x4 matrices of a KITTI ``calib.txt``, by key (``P0`` ...); bare lines are numbered."""
+    return {key: matrix for key, (matrix, _) in _read_projections(path).items()}
+
+
+def _read_projections(path: Path) -> dict[str, tuple[np.ndarray, int]]:
+    """``read_projection_matrices`` with the line of each matrix."""
     try:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
     except FileNotFoundError:
         raise CalibrationError(path, "not found (pass --calib intrinsics.yaml instead)") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CalibrationError(path, f"cannot read file ({exc})") from None
-    matrices: dict[str, np.ndarray] = {}
+    matrices: dict[str, tuple[np.ndarray, int]] = {}
     for number, raw in enumerate(lines, start=1):
         fields = raw.split()
         if not fields or fields[0].startswith("#"):
@@ -59,11 +73,33 @@ def read_projection_matrices(path: Path) -> dict[str, np.ndarray]:
         try:
             matrix = np.array([float(v) for v in values]).reshape(3, 4)
         except ValueError:
-            raise CalibrationError(path, f"{key}: not a number in {values}", number) from None
+            raise CalibrationError(path, f"{key}: not a number in {reprlib.repr(values)}", number) from None
         if not np.isfinite(matrix).all():
             raise CalibrationError(path, f"{key}: non-finite value", number)
-        matrices[key] = matrix
+        matrices[key] = (matrix, number)
     return matrices
+
+
+def check_pinhole_projection(path: Path, key: str, matrix: np.ndarray, line: int) -> None:
+    """Raise naming ``line`` unless ``matrix`` is ``K [I | t]`` with ``K`` = [[fx 0 cx] [0 fy cy] [0 0 1]]."""
+    fx, fy = float(matrix[0, 0]), float(matrix[1, 1])
+    if fx <= 0 or fy <= 0:
+        raise CalibrationError(path, f"{key}: focal lengths must be positive, got fx={fx:g}, fy={fy:g}", line)
+    scale = max(fx, fy)
+    problems = []
+    if abs(matrix[0, 1]) > PROJECTION_TOLERANCE * scale:
+        problems.append(f"skew {matrix[0, 1]:g} (row 1, column 2)")
+    if abs(matrix[1, 0]) > PROJECTION_TOLERANCE * scale:
+        problems.append(f"{matrix[1, 0]:g} below the diagonal (row 2, column 1)")
+    if np.abs(matrix[2, :3] - [0.0, 0.0, 1.0]).max() > PROJECTION_TOLERANCE:
+        problems.append(f"third row starts {' '.join(f'{v:g}' for v in matrix[2, :3])}, not 0 0 1")
+    if problems:
+        raise CalibrationError(
+            path,
+            f"{key} is not a rectified pinhole projection [fx 0 cx tx; 0 fy cy ty; 0 0 1 tz]: "
+            + "; ".join(problems),
+            line,
+        )
 
 
 def _image_folder(root: Path) -> Path:
@@ -71,7 +107,7 @@ def _image_folder(root: Path) -> Path:
         if (root / name).is_dir():
             return root / name
     names = ", ".join(f"{name}/" for name in IMAGE_FOLDERS)
-    raise DatasetError(root, f"no image folder ({names}): not a KITTI sequence")
+    raise DatasetError(display_path(root), f"no image folder ({names}): not a KITTI sequence")
 
 
 def _poses_file(root: Path) -> Path | None:
@@ -85,7 +121,10 @@ def _poses_file(root: Path) -> Path | None:
 
 def _check_count(path: Path, count: int, what: str, folder: Path, images: int) -> None:
     if count != images:
-        raise DatasetError(path, f"{count} {what} (one per line) but {images} images in {folder.name}/")
+        raise DatasetError(
+            display_path(path),
+            f"{count} {what} (one per line) but {images} images in {display_path(folder.name)}/",
+        )
 
 
 class KittiDataset(Dataset):
@@ -101,11 +140,13 @@ class KittiDataset(Dataset):
     @classmethod
     def open(cls, root: Path, *, calib: Path | None = None, strict: bool = False) -> KittiDataset:
         if (root / "sequences").is_dir() and not (root / "calib.txt").is_file():
-            raise DatasetError(root, "this is the KITTI dataset root: pass one sequence, e.g. sequences/00")
+            raise DatasetError(
+                display_path(root), "this is the KITTI dataset root: pass one sequence, e.g. sequences/00"
+            )
         folder = _image_folder(root)
         images = list_images(folder)
         if not images:
-            raise DatasetError(folder, "no images")
+            raise DatasetError(display_path(folder), "no images")
         notes = [f"images: {folder.name}/"]
 
         times_file = root / "times.txt"
@@ -135,9 +176,12 @@ class KittiDataset(Dataset):
 
     @staticmethod
     def _camera(calib_file: Path, key: str, size: tuple[int, int]) -> CameraIntrinsics:
-        matrices = read_projection_matrices(calib_file)
+        matrices = _read_projections(calib_file)
         if key not in matrices:
-            found = ", ".join(matrices) or "none"
+            names = [name if len(name) <= 12 else name[:9] + "..." for name in matrices]  # bounded message
+            found = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "") or "none"
             raise CalibrationError(calib_file, f"no {key} projection matrix (found: {found})")
-        fx, fy, cx, cy = (float(matrices[key][i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+        matrix, line = matrices[key]
+        check_pinhole_projection(calib_file, key, matrix, line)
+        fx, fy, cx, cy = (float(matrix[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
         return CameraIntrinsics(fx, fy, cx, cy, size[0], size[1], (), f"{calib_file} {key}")

@@ -15,7 +15,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from frontends.datasets.base import Dataset, ImageEntry, check_camera_size, first_image_size, list_images
+from frontends.datasets.base import (
+    Dataset,
+    ImageEntry,
+    check_camera_size,
+    display_path,
+    first_image_size,
+    list_images,
+)
 from frontends.datasets.calib import find_intrinsics_file, read_intrinsics
 from frontends.errors import DatasetError
 from frontends.gt_loops import read_loop_pairs
@@ -43,7 +50,7 @@ class LoopPairsDataset(Dataset):
     def open(cls, root: Path, *, calib: Path | None = None, strict: bool = False) -> LoopPairsDataset:
         images = list_images(root / "images")
         if not images:
-            raise DatasetError(root / "images", "no images")
+            raise DatasetError(display_path(root / "images"), "no images")
         entries = [ImageEntry(float(i), path) for i, path in enumerate(images)]
         notes = ["no timestamps in this layout: frame i is at i s"]
         size = first_image_size(entries)

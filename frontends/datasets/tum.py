@@ -6,13 +6,15 @@ TUM's published calibration), else TUM's ROS default with a warning. Ground trut
 to each image by nearest timestamp within 0.02 s (TUM's ``associate.py`` tolerance).
 
 Without ``rgb.txt`` (e.g. a clip of copied frames) the images in ``rgb/`` are used when their file
-names are timestamps, which is how TUM names them.
+names are timestamps, which is how TUM names them. File names in ``rgb.txt`` that are not UTF-8
+are kept as the bytes they are, so they name the files on disk.
 """
 
 from __future__ import annotations
 
 import logging
 import re
+import reprlib
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from frontends.datasets.base import (
     associate_nearest,
     check_camera_size,
     check_listed_images_exist,
+    display_path,
     first_image_size,
     list_images,
 )
@@ -66,28 +69,32 @@ def freiburg_camera(root: Path) -> int | None:
 def _read_rgb_list(root: Path) -> list[ImageEntry]:
     index = root / "rgb.txt"
     entries: list[ImageEntry] = []
+    shown = display_path(index)
     try:
-        lines = index.read_text(encoding="utf-8-sig").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(index, f"cannot read ({exc})") from None
+        # surrogateescape: a name that is not UTF-8 becomes the str os.fsdecode gives the file.
+        lines = index.read_text(encoding="utf-8-sig", errors="surrogateescape").splitlines()
+    except OSError as exc:
+        raise DatasetError(shown, f"cannot read ({exc.strerror})") from None
     for number, raw in enumerate(lines, start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
         fields = line.split()
         if len(fields) != 2:
-            raise DatasetError(index, f"expected 'timestamp filename', found {len(fields)} fields", number)
+            raise DatasetError(shown, f"expected 'timestamp filename', found {len(fields)} fields", number)
         try:
             stamp = float(fields[0])
         except ValueError:
-            raise DatasetError(index, f"timestamp is not a number: {fields[0]!r}", number) from None
+            raise DatasetError(
+                shown, f"timestamp is not a number: {reprlib.repr(fields[0])}", number
+            ) from None
         if not np.isfinite(stamp):
-            raise DatasetError(index, f"timestamp is not finite: {fields[0]!r}", number)
+            raise DatasetError(shown, f"timestamp is not finite: {reprlib.repr(fields[0])}", number)
         entries.append(ImageEntry(stamp, root / fields[1], index, number))
     if not entries:
-        raise DatasetError(index, "lists no images")
+        raise DatasetError(shown, "lists no images")
     stamps = np.array([e.timestamp for e in entries])
-    check_increasing(index, stamps, np.array([e.line for e in entries]), DatasetError)
+    check_increasing(shown, stamps, np.array([e.line for e in entries]), DatasetError)
     return entries
 
 
@@ -98,9 +105,11 @@ def _entries_from_file_names(root: Path) -> list[ImageEntry]:
         try:
             entries.append(ImageEntry(float(path.stem), path))
         except ValueError:
-            raise DatasetError(path, "no rgb.txt and this file name is not a timestamp") from None
+            raise DatasetError(
+                display_path(path), "no rgb.txt and this file name is not a timestamp"
+            ) from None
     if not entries:
-        raise DatasetError(root / "rgb", "no images")
+        raise DatasetError(display_path(root / "rgb"), "no images")
     return entries
 
 
@@ -120,7 +129,9 @@ class TumDataset(Dataset):
             entries = _entries_from_file_names(root)
             notes.append("no rgb.txt: frames from rgb/ file names (timestamps)")
         else:
-            raise DatasetError(root / "rgb.txt", "not found (and no rgb/ folder): not a TUM RGB-D folder")
+            raise DatasetError(
+                display_path(root / "rgb.txt"), "not found (and no rgb/ folder): not a TUM RGB-D folder"
+            )
         check_listed_images_exist(entries, strict)
         size = first_image_size(entries)
         camera = check_camera_size(cls._camera(root, calib, size, notes), size, root)
@@ -155,7 +166,7 @@ class TumDataset(Dataset):
         else:
             fx, fy, cx, cy, dist = ROS_DEFAULT_INTRINSICS
             source = "TUM ROS default (the folder name names no freiburg camera)"
-            log.warning("%s: %s; pass --calib to set the intrinsics", root, source)
+            log.warning("%s: %s; pass --calib to set the intrinsics", display_path(root), source)
         notes.append(f"intrinsics: {source}")
         # The published values are for 640x480; scale if the images were resized.
         return CameraIntrinsics(fx, fy, cx, cy, 640, 480, dist, source).with_size(*size)

@@ -51,6 +51,7 @@ from lcd.objects.ssd_cv2 import (
     SSD_PRE_NMS_TOP_K,
     check_post_processing,
     clip_box,
+    model_digest,
     pixel_box,
     prepare_image,
 )
@@ -121,6 +122,16 @@ class OnnxDetector:
         self.input_size = config.input_size or self._declared_size(inputs[0].shape)
         if config.layout == "ssd-raw":
             self._anchors = ssd_anchors()
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A checkpoint keeps the config and the model file's digest; the network (not picklable)
+        is loaded again on resume, and a model file that changed since is refused."""
+        return {"config": self.config, "model": str(self.model_path), "sha256": model_digest(self.model_path)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if model_digest(Path(state["model"])) != state["sha256"]:
+            raise ModelError(state["model"], "the model file changed since the checkpoint was made")
+        self.__init__(state["config"])  # type: ignore[misc]
 
     def _declared_size(self, shape: Sequence[Any]) -> int:
         layout = self.config.layout

@@ -42,6 +42,7 @@ import numpy as np
 
 from frontends.config import load_config
 from frontends.errors import ConfigError, ModelError, SymbioError
+from frontends.safe_io import file_sha256
 from frontends.types import DetectedObject, Frame
 from lcd.objects.coco import COCO90
 
@@ -115,6 +116,16 @@ class SsdMobilenetCv2:
             raise ModelError(
                 self.model_path, f"cannot load the TensorFlow graph ({_first_line(exc)})"
             ) from None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A checkpoint keeps the config and the model file's digest; the network (not picklable)
+        is loaded again on resume, and a model file that changed since is refused."""
+        return {"config": self.config, "model": str(self.model_path), "sha256": model_digest(self.model_path)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if model_digest(Path(state["model"])) != state["sha256"]:
+            raise ModelError(state["model"], "the model file changed since the checkpoint was made")
+        self.__init__(state["config"])  # type: ignore[misc]
 
     def detect(self, image: np.ndarray, frame: Frame | None = None) -> list[DetectedObject]:
         bgr = prepare_image(image, self.name)
@@ -216,3 +227,10 @@ def _first_line(exc: BaseException) -> str:
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
     # OpenCV messages start with the source location; the reason is on the last line.
     return lines[-1] if lines else type(exc).__name__
+
+
+def model_digest(path: Path) -> str:
+    try:
+        return file_sha256(path)
+    except OSError as exc:
+        raise ModelError(path, f"cannot read the model file ({exc.strerror or exc})") from None
