@@ -49,9 +49,9 @@ from lcd.objects.ssd_cv2 import (
     SSD_MAX_DETECTIONS,
     SSD_NMS_THRESHOLD,
     SSD_PRE_NMS_TOP_K,
+    ReloadedModel,
     check_post_processing,
     clip_box,
-    model_digest,
     pixel_box,
     prepare_image,
 )
@@ -92,7 +92,7 @@ class OnnxConfig:
             raise ConfigError(f"onnx detector: mask_threshold must be in (0, 1), got {self.mask_threshold}")
 
 
-class OnnxDetector:
+class OnnxDetector(ReloadedModel):
     """One ONNX model and its layout; the onnxruntime session is created once per instance."""
 
     name = "onnx"
@@ -122,16 +122,6 @@ class OnnxDetector:
         self.input_size = config.input_size or self._declared_size(inputs[0].shape)
         if config.layout == "ssd-raw":
             self._anchors = ssd_anchors()
-
-    def __getstate__(self) -> dict[str, Any]:
-        """A checkpoint keeps the config and the model file's digest; the network (not picklable)
-        is loaded again on resume, and a model file that changed since is refused."""
-        return {"config": self.config, "model": str(self.model_path), "sha256": model_digest(self.model_path)}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        if model_digest(Path(state["model"])) != state["sha256"]:
-            raise ModelError(state["model"], "the model file changed since the checkpoint was made")
-        self.__init__(state["config"])  # type: ignore[misc]
 
     def _declared_size(self, shape: Sequence[Any]) -> int:
         layout = self.config.layout

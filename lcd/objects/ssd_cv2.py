@@ -87,7 +87,26 @@ def check_post_processing(
         raise ConfigError(f"{detector}: max_detections must be >= 1, got {max_detections}")
 
 
-class SsdMobilenetCv2:
+class ReloadedModel:
+    """Pickles (a run checkpoint) as its config and its model file's digest: the network does not
+    pickle, so it is loaded again on resume, and a model file that changed since is refused."""
+
+    config: Any
+    model_path: Path
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A checkpoint keeps the config and the model file's digest; the network (not picklable)
+        is loaded again on resume, and a model file that changed since is refused."""
+        return {"config": self.config, "model": str(self.model_path), "sha256": model_digest(self.model_path)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        if model_digest(Path(state["model"])) != state["sha256"]:
+            raise ModelError(state["model"], "the model file changed since the checkpoint was made")
+        # The detector's own __init__ loads the network (this mixin has none of its own).
+        type(self).__init__(self, state["config"])  # type: ignore[call-arg]
+
+
+class SsdMobilenetCv2(ReloadedModel):
     """SSD-MobileNet-v2 COCO on OpenCV DNN; the network is loaded once per instance."""
 
     name = "ssd-mobilenet"
@@ -116,16 +135,6 @@ class SsdMobilenetCv2:
             raise ModelError(
                 self.model_path, f"cannot load the TensorFlow graph ({_first_line(exc)})"
             ) from None
-
-    def __getstate__(self) -> dict[str, Any]:
-        """A checkpoint keeps the config and the model file's digest; the network (not picklable)
-        is loaded again on resume, and a model file that changed since is refused."""
-        return {"config": self.config, "model": str(self.model_path), "sha256": model_digest(self.model_path)}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        if model_digest(Path(state["model"])) != state["sha256"]:
-            raise ModelError(state["model"], "the model file changed since the checkpoint was made")
-        self.__init__(state["config"])  # type: ignore[misc]
 
     def detect(self, image: np.ndarray, frame: Frame | None = None) -> list[DetectedObject]:
         bgr = prepare_image(image, self.name)
