@@ -5,7 +5,18 @@ temporal window); it yields its best candidate and that candidate's score. The c
 positive when it lies within ``tolerance`` frames of a ground-truth reference of the query. A query
 "has a loop" when some earlier keyframe lies within ``tolerance`` frames of one of its references,
 i.e. when a true positive was possible. Sweeping a threshold over the best scores gives the
-precision/recall curve; recall = TP / queries that have a loop.
+precision/recall curve; recall = TP / queries that have a loop. ``recall_at_1``: the share of the
+queries with a loop whose best candidate is right, whatever its score (place recognition's figure).
+
+Verified protocol (``symbio eval lcd --verify``): each query's top-k candidates go, best first,
+through the pipeline's two-view verification; the query's verified answer is the best-ranked
+candidate that passes, kept with its inlier count. At the verifier's own decision every query with
+a verified answer is accepted: ``precision_verified`` (1.0 when nothing is accepted, the raw
+``precision``'s convention: no accepted loop, no false one) and ``recall_verified``, which is also
+``recall_at_1_verified`` (no threshold sits between a verified answer and its acceptance).
+``recall_at_100p_verified`` sweeps a threshold over the verified answers' inlier counts, not the
+detector's scores: the inlier count is the verifier's own confidence, so a wrong place that
+scraped through with few inliers is what a stricter threshold removes first.
 """
 
 from __future__ import annotations
@@ -79,6 +90,37 @@ def summarise(
         "auc_pr": auc,
         "threshold": threshold,
         "threshold_at_100p": float(thresholds[perfect][-1]) if perfect.any() else float("nan"),
+    }
+
+
+def recall_at_1(correct: np.ndarray, has_loop: np.ndarray) -> float:
+    """Share of the queries with a loop whose (best) answer is right; 0.0 when none has a loop."""
+    correct, has_loop = np.asarray(correct, dtype=bool), np.asarray(has_loop, dtype=bool)
+    positives = int(has_loop.sum())
+    return int((correct & has_loop).sum()) / positives if positives else 0.0
+
+
+def summarise_verified(
+    verified: np.ndarray, correct: np.ndarray, inliers: np.ndarray, has_loop: np.ndarray
+) -> Mapping[str, float | int]:
+    """Figures of the verified answers (module docstring), one entry per query: whether it has a
+    verified answer, whether that answer is right, its inlier count, whether the query has a loop."""
+    verified = np.asarray(verified, dtype=bool)
+    correct = np.asarray(correct, dtype=bool) & verified
+    inliers = np.asarray(inliers, dtype=np.float64)
+    positives = int(np.asarray(has_loop, dtype=bool).sum())
+    tp, accepted = int(correct.sum()), int(verified.sum())
+    thresholds, precision, recall = precision_recall_curve(inliers[verified], correct[verified], positives)
+    perfect = precision >= 1.0
+    return {
+        "queries_verified": accepted,
+        "true_positives_verified": tp,
+        "false_positives_verified": accepted - tp,
+        "precision_verified": tp / accepted if accepted else 1.0,
+        "recall_verified": tp / positives if positives else 0.0,
+        "recall_at_1_verified": recall_at_1(correct, has_loop),
+        "recall_at_100p_verified": float(recall[perfect].max()) if perfect.any() else 0.0,
+        "inliers_at_100p_verified": float(thresholds[perfect][-1]) if perfect.any() else float("nan"),
     }
 
 

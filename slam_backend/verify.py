@@ -128,18 +128,20 @@ def match_descriptors(a: np.ndarray, b: np.ndarray, ratio: float, max_hamming: i
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), dtype=np.int64)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    forward = matcher.knnMatch(a, b, k=2)
-    backward = matcher.match(b, a)
-    best_back = np.full(len(b), -1, dtype=np.int64)
-    for m in backward:
-        best_back[m.queryIdx] = m.trainIdx
-    pairs = [
+    forward = [
         (m.queryIdx, m.trainIdx)
-        for m, n in (p for p in forward if len(p) == 2)
-        if m.distance < ratio * n.distance
-        and m.distance <= max_hamming
-        and best_back[m.trainIdx] == m.queryIdx
+        for m, n in (p for p in matcher.knnMatch(a, b, k=2) if len(p) == 2)
+        if m.distance < ratio * n.distance and m.distance <= max_hamming
     ]
+    if not forward:
+        return np.zeros((0, 2), dtype=np.int64)
+    # The mutual check needs the backward match of only the ``b`` descriptors that passed the ratio
+    # test: the same answer (each row is matched on its own) at a fraction of a full second pass.
+    targets = np.unique(np.array([j for _, j in forward], dtype=np.int64))
+    best_back = np.full(len(b), -1, dtype=np.int64)
+    for m in matcher.match(b[targets], a):
+        best_back[targets[m.queryIdx]] = m.trainIdx
+    pairs = [(i, j) for i, j in forward if best_back[j] == i]
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
@@ -160,6 +162,53 @@ def colmap_camera(camera: CameraIntrinsics) -> pycolmap.Camera:
     )
 
 
+@dataclass(frozen=True)
+class TwoViewVerification:
+    """Stages 1-2 of the verification (ORB matching, epipolar geometry): images only, no map."""
+
+    #: Enough matches and epipolar inliers (``min_matches``, ``min_inliers``, ``min_inlier_ratio``).
+    passed: bool
+    #: Why it failed ("" when it passed).
+    reason: str
+    matches: int
+    #: (K, 2) keypoint indices (query, match) of the epipolar inliers; empty when matching failed.
+    inlier_pairs: np.ndarray
+
+    @property
+    def inliers(self) -> int:
+        return len(self.inlier_pairs)
+
+
+def verify_two_view(
+    query: Keyframe, match: Keyframe, camera: pycolmap.Camera, config: VerifierConfig
+) -> TwoViewVerification:
+    """Does ``query`` see ``match``'s place by its image alone? The first two stages of
+    ``PycolmapVerifier.verify`` (which calls this), also used by ``symbio eval lcd --verify``."""
+    pairs = match_descriptors(query.descriptors, match.descriptors, config.ratio, config.max_hamming)
+    if len(pairs) < config.min_matches:
+        reason = f"{len(pairs)} descriptor matches < {config.min_matches}"
+        return TwoViewVerification(False, reason, len(pairs), np.zeros((0, 2), dtype=np.int64))
+    options = pycolmap.TwoViewGeometryOptions()
+    options.ransac.max_error = config.max_epipolar_error_px
+    options.ransac.random_seed = config.seed
+    geometry = pycolmap.estimate_calibrated_two_view_geometry(
+        camera,
+        query.keypoints.astype(np.float64),
+        camera,
+        match.keypoints.astype(np.float64),
+        pairs.astype(np.uint32),
+        options,
+    )
+    inliers = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+    if len(inliers) < config.min_inliers or len(inliers) / len(pairs) < config.min_inlier_ratio:
+        reason = (
+            f"{len(inliers)} epipolar inliers of {len(pairs)} matches "
+            f"(need {config.min_inliers} and ratio {config.min_inlier_ratio})"
+        )
+        return TwoViewVerification(False, reason, len(pairs), inliers)
+    return TwoViewVerification(True, "", len(pairs), inliers)
+
+
 class PycolmapVerifier:
     """See the module docstring."""
 
@@ -172,25 +221,13 @@ class PycolmapVerifier:
     def verify(self, query: Keyframe, match: Keyframe) -> Verification:
         config = self.config
         ids = (query.id, match.id)
-        pairs = match_descriptors(query.descriptors, match.descriptors, config.ratio, config.max_hamming)
-        if len(pairs) < config.min_matches:
-            return Verification(
-                *ids, False, f"{len(pairs)} descriptor matches < {config.min_matches}", len(pairs)
-            )
-        inliers = self._epipolar_inliers(query, match, pairs)
-        ratio = len(inliers) / len(pairs)
-        if len(inliers) < config.min_inliers or ratio < config.min_inlier_ratio:
-            return Verification(
-                *ids,
-                False,
-                f"{len(inliers)} epipolar inliers of {len(pairs)} matches "
-                f"(need {config.min_inliers} and ratio {config.min_inlier_ratio})",
-                len(pairs),
-                len(inliers),
-            )
+        two_view = verify_two_view(query, match, self.camera, config)
+        if not two_view.passed:
+            return Verification(*ids, False, two_view.reason, two_view.matches, two_view.inliers)
+        inliers, matches = two_view.inlier_pairs, two_view.matches
         if query.points3d is None or match.points3d is None:
             return Verification(
-                *ids, False, "no map points: the relative scale is unobservable", len(pairs), len(inliers)
+                *ids, False, "no map points: the relative scale is unobservable", matches, len(inliers)
             )
         both = inliers[
             np.isfinite(query.points3d[inliers[:, 0]]).all(axis=1)
@@ -201,24 +238,10 @@ class PycolmapVerifier:
                 *ids,
                 False,
                 f"{len(both)} inliers with map points < {config.min_points}",
-                len(pairs),
+                matches,
                 len(inliers),
             )
-        return self._sim3(query, match, both, len(pairs), len(inliers))
-
-    def _epipolar_inliers(self, query: Keyframe, match: Keyframe, pairs: np.ndarray) -> np.ndarray:
-        options = pycolmap.TwoViewGeometryOptions()
-        options.ransac.max_error = self.config.max_epipolar_error_px
-        options.ransac.random_seed = self.config.seed
-        geometry = pycolmap.estimate_calibrated_two_view_geometry(
-            self.camera,
-            query.keypoints.astype(np.float64),
-            self.camera,
-            match.keypoints.astype(np.float64),
-            pairs.astype(np.uint32),
-            options,
-        )
-        return np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        return self._sim3(query, match, both, matches, len(inliers))
 
     def _sim3(
         self, query: Keyframe, match: Keyframe, both: np.ndarray, matches: int, inliers: int

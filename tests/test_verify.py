@@ -12,7 +12,15 @@ from frontends.errors import ConfigError
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
 from frontends.types import Keyframe
-from slam_backend.verify import VERIFIERS, Verifier, create, match_descriptors
+from slam_backend.verify import (
+    VERIFIERS,
+    Verifier,
+    VerifierConfig,
+    colmap_camera,
+    create,
+    match_descriptors,
+    verify_two_view,
+)
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +85,54 @@ def test_matching_is_mutual_and_config_is_validated(renderer: SceneRenderer) -> 
     with pytest.raises(ConfigError, match="ratio"):
         create(scene_camera(renderer), ["ratio=1.5"])
     assert "pycolmap" in VERIFIERS.names()
+
+
+def test_two_view_stage_is_the_verifiers_own(renderer: SceneRenderer, verifier: Verifier) -> None:
+    """``symbio eval lcd --verify`` calls ``verify_two_view``: the verifier's first stages, not a copy."""
+    camera, config = colmap_camera(scene_camera(renderer)), VerifierConfig()
+    match, query = keyframe_with_depth(renderer, 6, 0), keyframe_with_depth(renderer, 630, 1)
+    two_view = verify_two_view(query, match, camera, config)
+    no_map = verifier.verify(dataclasses.replace(query, points3d=None), match)
+    assert two_view.passed and two_view.inliers >= 100
+    assert two_view.inlier_pairs.shape == (two_view.inliers, 2)
+    assert (no_map.matches, no_map.inliers) == (two_view.matches, two_view.inliers)
+    elsewhere = keyframe_with_depth(renderer, 300, 1)
+    rejected = verify_two_view(elsewhere, match, camera, config)
+    assert not rejected.passed and rejected.reason == verifier.verify(elsewhere, match).reason
+
+
+def _mutual_ratio_matches(a: np.ndarray, b: np.ndarray, ratio: float, max_hamming: int) -> np.ndarray:
+    """Reference: the full Hamming distance matrix, ties to the lowest index (as OpenCV's matcher)."""
+    bits_a, bits_b = np.unpackbits(a, axis=1).astype(np.int64), np.unpackbits(b, axis=1).astype(np.int64)
+    distance = bits_a @ (1 - bits_b).T + (1 - bits_a) @ bits_b.T
+    rows = np.arange(len(a))
+    best = distance.argmin(axis=1)
+    first = distance[rows, best]
+    others = distance.copy()
+    others[rows, best] = np.iinfo(np.int64).max
+    keep = (
+        (first < ratio * others.min(axis=1))
+        & (first <= max_hamming)
+        & (distance.argmin(axis=0)[best] == rows)
+    )
+    return np.stack([rows[keep], best[keep]], axis=1)
+
+
+def test_matching_equals_the_full_mutual_ratio_test() -> None:
+    """The backward pass matches only the ratio-test survivors: same pairs as matching every descriptor,
+    also when many distances tie (descriptors drawn from a few bit patterns)."""
+    rng = np.random.default_rng(7)
+    found = 0
+    for trial in range(40):
+        patterns = rng.integers(0, 256, (int(rng.integers(3, 40)), 32), dtype=np.uint8)
+        a = patterns[rng.integers(0, len(patterns), int(rng.integers(2, 200)))]
+        b = np.concatenate([a[::2], rng.integers(0, 256, (int(rng.integers(0, 100)), 32), dtype=np.uint8)])
+        # Odd trials flip a few low bits: near-duplicates instead of exact ones.
+        noisy = a ^ (rng.random(a.shape) < 0.02).astype(np.uint8) if trial % 2 else a
+        expected = _mutual_ratio_matches(noisy, b, 0.8, 80)
+        np.testing.assert_array_equal(match_descriptors(noisy, b, 0.8, 80), expected)
+        found += len(expected)
+    assert found > 100
 
 
 def test_deterministic(renderer: SceneRenderer) -> None:
