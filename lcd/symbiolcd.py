@@ -25,6 +25,8 @@ Our interpretation where the paper leaves a choice open:
   pair. The table holds features and labels, not a pickled model: the forest is refit at
   construction (deterministic with ``seed``, about 0.4 s) and survives scikit-learn upgrades.
 - Which pairs are scored: the top ``shortlist`` vBoW candidates, the rows the table was built from.
+- Vocabulary: the shipped tree by default, the one the table's vBoW features came from; the online
+  vocabulary's scores lie on another scale (docs/2026-12-06-online-vocabulary.md).
 - Monotonic constraints (``monotonic``): the probability may only rise with ``vbow``,
   ``vbow_relative`` and ``label_ratio`` and only fall with ``hausdorff``. An unconstrained forest
   saturates where most training pairs are loops and then ranks by noise; leave-one-scene-out on
@@ -57,7 +59,8 @@ from frontends.types import DetectedObject, Keyframe
 from lcd.base import LoopCandidate
 from lcd.label_matching import match_labels
 from lcd.objects.filtering import FilterConfig, filter_objects
-from lcd.vbow import DEFAULT_VOCABULARY
+from lcd.online_vocabulary import OnlineVocabulary, OnlineVocabularyConfig
+from lcd.vbow import open_vocabulary
 from lcd.vocabulary import BowDatabase, Vocabulary, empty_bow
 
 if TYPE_CHECKING:
@@ -103,8 +106,10 @@ class SymbioLCDConfig:
     #: Constrain the forest to ``MONOTONIC`` (see the module docstring).
     monotonic: bool = True
     objects: FilterConfig = field(default_factory=FilterConfig)
-    #: Vocabulary ``.npz``; empty = the shipped default.
+    #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
     vocabulary: str = ""
+    #: The online vocabulary's settings (with ``vocabulary: online``).
+    online: OnlineVocabularyConfig = field(default_factory=OnlineVocabularyConfig)
     #: Training table ``.npz`` (``symbio symbiolcd-train``); empty = the shipped default.
     model: str = ""
 
@@ -167,7 +172,7 @@ class ShortlistBuilder:
     the rows it later scores.
     """
 
-    def __init__(self, config: SymbioLCDConfig, vocabulary: Vocabulary) -> None:
+    def __init__(self, config: SymbioLCDConfig, vocabulary: Vocabulary | OnlineVocabulary) -> None:
         self.config = config
         self.vocabulary = vocabulary
         self._database = BowDatabase()
@@ -178,10 +183,14 @@ class ShortlistBuilder:
     def add(self, keyframe: Keyframe) -> Shortlist:
         config = self.config
         descriptors = keyframe.descriptors
-        bow = self.vocabulary.transform(descriptors) if len(descriptors) else empty_bow()
         earlier = len(self._ids)
-        scores = self._database.query(bow)
-        self._database.add(bow)
+        if isinstance(self.vocabulary, OnlineVocabulary):
+            # The online vocabulary is its own inverted index (scores under the current IDF).
+            scores = self.vocabulary.add_and_query(descriptors)[1]
+        else:
+            bow = self.vocabulary.transform(descriptors) if len(descriptors) else empty_bow()
+            scores = self._database.query(bow)
+            self._database.add(bow)
         objects = filter_objects(keyframe.objects, image_size_of(keyframe), config.objects)
         enough_features = len(keyframe.keypoints) >= config.min_features
         self._ids.append(keyframe.id)
@@ -270,14 +279,14 @@ class SymbioLCD:
     def __init__(
         self,
         config: SymbioLCDConfig = SymbioLCDConfig(),
-        vocabulary: Vocabulary | None = None,
+        vocabulary: Vocabulary | OnlineVocabulary | None = None,
         table: TrainingTable | None = None,
     ) -> None:
         self.config = config
         self.threshold = config.threshold
         self.temporal_window = config.temporal_window
         if vocabulary is None:
-            vocabulary = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY)
+            vocabulary = open_vocabulary(config.vocabulary, config.online)
         if table is None:
             table = load_table(config.model or DEFAULT_TABLE)
         self.forest = fit_forest(table, config)

@@ -31,6 +31,8 @@ interpretation", with the commands that measure them):
   dominate (RTAB-Map samples recall at 100 % precision 0.25 vs 0.91 at h = 10, the default).
 - Word labels are the leaves of the shipped vocabulary (``word_level = 5``): coarser words made
   the plain vertex histogram (no IDF weighting) too unspecific (0.23-0.73 on the RTAB-Map samples).
+  The online vocabulary's words (``vocabulary=online``) lift Gardens Point but not the RTAB-Map
+  samples (0.705 vs 0.909), so the tree stays the default (docs/2026-12-06-online-vocabulary.md).
 - ``threshold`` 0.035 lies above the best false positive of all our evaluation sets (the kernel
   of real loops is 0.02-0.3 at h = 10); lower it when a geometric verifier follows.
 - Keyframes inside ``temporal_window`` of the query are never proposed (as in ORB-SLAM).
@@ -56,8 +58,8 @@ from frontends.types import Keyframe
 from lcd.base import LoopCandidate
 from lcd.graph import GraphConfig, LabelledGraph, build_graph
 from lcd.objects.filtering import FilterConfig, filter_objects
-from lcd.vbow import DEFAULT_VOCABULARY
-from lcd.vocabulary import Vocabulary
+from lcd.online_vocabulary import OnlineVocabulary, OnlineVocabularyConfig
+from lcd.vbow import open_vocabulary
 from lcd.wl import GrakelWL, WLKernel
 
 
@@ -65,9 +67,12 @@ from lcd.wl import GrakelWL, WLKernel
 class SymbioLCD2Config:
     graph: GraphConfig = field(default_factory=GraphConfig)
     objects: FilterConfig = field(default_factory=FilterConfig)
-    #: Vocabulary file; empty = the shipped default.
+    #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
     vocabulary: str = ""
-    #: Tree level whose node ids label feature nodes (level 2 of a k=10 tree: 100 words).
+    #: The online vocabulary's settings (with ``vocabulary: online``).
+    online: OnlineVocabularyConfig = field(default_factory=OnlineVocabularyConfig)
+    #: Tree level whose node ids label feature nodes (level 2 of a k=10 tree: 100 words); the
+    #: online vocabulary is flat and ignores it.
     word_level: int = 5
     #: WL iterations h (the paper's h = 50; see the module docstring).
     iterations: int = 10
@@ -102,7 +107,7 @@ class SymbioLCD2:
         self.name = name
         self.threshold = config.threshold
         self.temporal_window = config.temporal_window
-        self.vocabulary = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY)
+        self.vocabulary = open_vocabulary(config.vocabulary, config.online)
         self.kernel: WLKernel | GrakelWL = (
             WLKernel(config.iterations) if config.wl_backend == "ours" else GrakelWL(config.iterations)
         )
@@ -114,6 +119,8 @@ class SymbioLCD2:
         self.last_graph: LabelledGraph | None = None
 
     def graph_of(self, keyframe: Keyframe) -> LabelledGraph:
+        """The keyframe's graph. With the online vocabulary this also adds the keyframe's
+        descriptors to it (new words for the unmatched ones), so call it once per keyframe."""
         if keyframe.image is not None:
             image_size = (keyframe.image.shape[1], keyframe.image.shape[0])
         else:  # no image kept: the keypoints' extent bounds it
@@ -122,7 +129,10 @@ class SymbioLCD2:
         objects = filter_objects(keyframe.objects, image_size, self.config.objects)
         if len(objects) < self.config.graph.min_objects:
             self.object_poor_keyframes += 1
-        words = self.vocabulary.words_at_level(keyframe.descriptors, self.config.word_level)
+        if isinstance(self.vocabulary, OnlineVocabulary):
+            words = self.vocabulary.add(keyframe.descriptors)
+        else:
+            words = self.vocabulary.words_at_level(keyframe.descriptors, self.config.word_level)
         return build_graph(keyframe.keypoints, words, objects, self.config.graph)
 
     def add(self, keyframe: Keyframe) -> list[LoopCandidate]:

@@ -6,6 +6,10 @@ earlier keyframes outside the temporal window: more than ``temporal_window`` key
 at least ``time_window`` seconds older (either can be 0). Keyframes are counted by arrival, not by
 id, so sparse ids work.
 
+Vocabulary: ``online`` by default, built from the sequence itself (``lcd.online_vocabulary``, its own
+inverted index); ``vocabulary=""`` is the shipped tree. RTAB-Map samples 0.977 vs 0.909 recall at
+100 % precision, Gardens Point recall@1 0.67 vs 0.40 (docs/2026-12-06-online-vocabulary.md).
+
 Score (``normalise``):
 - ``none``: the raw L1 score.
 - ``previous``: the raw score divided by the query's score against its previous keyframe(s)
@@ -40,7 +44,7 @@ defined) and ``consistency`` (when enabled).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -50,18 +54,32 @@ from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.types import Keyframe
 from lcd.base import LoopCandidate
+from lcd.online_vocabulary import OnlineVocabulary, OnlineVocabularyConfig
 from lcd.vocabulary import BowDatabase, BowVector, Vocabulary, empty_bow
 
 #: The vocabulary shipped with the package (see ``lcd/data/README.md``).
 DEFAULT_VOCABULARY = Path(__file__).resolve().parent / "data" / "orb_k10_l5.npz"
+#: The ``vocabulary`` value that selects the online vocabulary (``lcd.online_vocabulary``).
+ONLINE = "online"
+
+
+def open_vocabulary(choice: str, online: OnlineVocabularyConfig) -> Vocabulary | OnlineVocabulary:
+    """A config's ``vocabulary``: ``online`` = a new, empty online vocabulary (``online`` its
+    config), empty = the shipped tree, else the path of a tree ``.npz``."""
+    if choice == ONLINE:
+        return OnlineVocabulary(online)
+    return Vocabulary.load(choice or DEFAULT_VOCABULARY)
+
 
 Normalise = Literal["none", "previous"]
 
 
 @dataclass(frozen=True)
 class VbowConfig:
-    #: Vocabulary ``.npz``; empty = the shipped default.
-    vocabulary: str = ""
+    #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
+    vocabulary: str = ONLINE
+    #: The online vocabulary's settings (with ``vocabulary: online``).
+    online: OnlineVocabularyConfig = field(default_factory=OnlineVocabularyConfig)
     #: A candidate whose score (raw or normalised, per ``normalise``) reaches this counts as a loop.
     threshold: float = 0.1
     #: The last this many keyframes before the query are never candidates.
@@ -94,11 +112,13 @@ class VbowDetector:
 
     name = "vbow"
 
-    def __init__(self, config: VbowConfig = VbowConfig(), vocabulary: Vocabulary | None = None) -> None:
+    def __init__(
+        self, config: VbowConfig = VbowConfig(), vocabulary: Vocabulary | OnlineVocabulary | None = None
+    ) -> None:
         self.config = config
         self.threshold = config.threshold
         if vocabulary is None:
-            vocabulary = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY)
+            vocabulary = open_vocabulary(config.vocabulary, config.online)
         self.vocabulary = vocabulary
         self._database = BowDatabase()
         self._ids: list[int] = []
@@ -110,10 +130,14 @@ class VbowDetector:
 
     def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
         descriptors = keyframe.descriptors
-        bow = self.vocabulary.transform(descriptors) if len(descriptors) else empty_bow()
         earlier = len(self._ids)
-        raw = self._database.query(bow)
-        self._database.add(bow)
+        if isinstance(self.vocabulary, OnlineVocabulary):
+            # The online vocabulary is its own inverted index (scores under the current IDF).
+            bow, raw, _ = self.vocabulary.add_and_query(descriptors)
+        else:
+            bow = self.vocabulary.transform(descriptors) if len(descriptors) else empty_bow()
+            raw = self._database.query(bow)
+            self._database.add(bow)
         self._position[keyframe.id] = earlier
         self._ids.append(keyframe.id)
         self._timestamps.append(keyframe.timestamp)
