@@ -449,6 +449,10 @@ def run_figures(
         "loops_proposed": len(loops),
         "loops_verified": sum(r.verified for r in loops),
         "loops_accepted": sum(r.accepted for r in loops),
+        # Candidates whose map was too thin at first (``LoopClosingConfig.defer_retries``).
+        "loops_deferred": sum(r.deferrals > 0 for r in loops),
+        "loops_accepted_after_deferral": sum(r.accepted and r.deferrals > 0 for r in loops),
+        "loops_accepted_two_view_join": sum(r.accepted and r.two_view for r in loops),
         **global_ba_figures(closing),
         "object_detector_failures": counters.object_detector_failures,
         "loop_detector_failures": counters.loop_detector_failures,

@@ -27,7 +27,7 @@ are rejected with that reason. Every random choice takes ``seed``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import cv2
@@ -55,6 +55,11 @@ class Verification:
     covariance: np.ndarray | None = None
     #: (M, 2) keypoint indices (query, match) of the pairs the constraint rests on (PnP inliers).
     correspondences: np.ndarray | None = None
+    #: The images agree (the two-view stage passed) but too few epipolar inliers have a map point in
+    #: both keyframes: the map is thin there, the place may well be right (``LoopClosing`` defers it).
+    thin_map: bool = False
+    #: The two-view stage's result when ``thin_map`` (what ``LoopClosing`` can join segments with).
+    two_view: TwoViewVerification | None = field(default=None, repr=False, compare=False)
 
     @property
     def scale(self) -> float:
@@ -173,6 +178,11 @@ class TwoViewVerification:
     matches: int
     #: (K, 2) keypoint indices (query, match) of the epipolar inliers; empty when matching failed.
     inlier_pairs: np.ndarray
+    #: ``match_from_query`` [R | t] (3x4, |t| = 1) from the essential matrix when it passed and the
+    #: geometry is a calibrated two-view one (None for planar, panoramic or uncalibrated fits).
+    match_from_query: np.ndarray | None = None
+    #: Median triangulation angle of the inliers (deg) under that pose; 0 without one.
+    triangulation_angle_deg: float = 0.0
 
     @property
     def inliers(self) -> int:
@@ -191,6 +201,7 @@ def verify_two_view(
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.max_error = config.max_epipolar_error_px
     options.ransac.random_seed = config.seed
+    options.compute_relative_pose = True
     geometry = pycolmap.estimate_calibrated_two_view_geometry(
         camera,
         query.keypoints.astype(np.float64),
@@ -206,7 +217,11 @@ def verify_two_view(
             f"(need {config.min_inliers} and ratio {config.min_inlier_ratio})"
         )
         return TwoViewVerification(False, reason, len(pairs), inliers)
-    return TwoViewVerification(True, "", len(pairs), inliers)
+    relative = geometry.cam2_from_cam1
+    if geometry.config != pycolmap.TwoViewGeometryConfiguration.CALIBRATED or relative is None:
+        return TwoViewVerification(True, "", len(pairs), inliers)
+    pose = np.asarray(relative.matrix(), dtype=np.float64)
+    return TwoViewVerification(True, "", len(pairs), inliers, pose, float(np.degrees(geometry.tri_angle)))
 
 
 class PycolmapVerifier:
@@ -240,6 +255,8 @@ class PycolmapVerifier:
                 f"{len(both)} inliers with map points < {config.min_points}",
                 matches,
                 len(inliers),
+                thin_map=True,
+                two_view=two_view,
             )
         return self._sim3(query, match, both, matches, len(inliers))
 
