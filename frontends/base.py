@@ -90,8 +90,10 @@ class MaskingFrontend(Frontend, Protocol):
     """A frontend that keeps objects which move on their own out of its map (DynaSLAM-style)."""
 
     def set_dynamic_objects(self, provider: Callable[[Frame], Sequence[Sequence[float]]] | None) -> None:
-        """``provider(frame)`` gives the boxes (x0, y0, x1, y1) of moving objects in a frame the
-        frontend is about to map (a keyframe); features inside them are not mapped."""
+        """``provider(frame)`` gives the boxes (x0, y0, x1, y1[, may_keep]) of objects that can move
+        in a frame the frontend is about to map (a keyframe); features inside them are not mapped.
+        ``may_keep`` 1: a vehicle, which the frontend may map when it sees it static (mono-vo's
+        geometric check, ``frontends/mono_vo/masking.py``); 0 or absent: always masked."""
         ...
 
 

@@ -696,15 +696,19 @@ class LoopClosing:
         self.counters.seconds["objects"] += time.perf_counter() - start
         return found
 
-    def movable_boxes(self, frame: Frame) -> list[tuple[float, float, float, float]]:
-        """Boxes of the objects in ``frame`` that move on their own (``movable_labels``), for a
-        frontend that keeps them out of its map; the detections are kept for the keyframe."""
+    def movable_boxes(self, frame: Frame) -> list[tuple[float, float, float, float, float]]:
+        """Boxes of the objects in ``frame`` that can move on their own (``movable_labels``), for a
+        frontend that keeps them out of its map; the detections are kept for the keyframe. A fifth
+        value 1 marks a vehicle, which is often parked: the frontend may keep it when it sees it
+        static. People and animals (0) stand still only for moments, and two views cannot see one
+        walking along the camera's path (docs/2026-12-06-masking.md), so they stay masked."""
         if self.objects is None:
             return []
         found = self._detect(frame)
         self._detections[frame.index] = found
         movable = set(self.config.movable_labels)
-        return [o.box for o in found if o.label in movable]
+        parked = {"bicycle", "car", "motorcycle", "bus", "train", "truck", "boat"}
+        return [(*o.box, float(o.label in parked)) for o in found if o.label in movable]
 
     def _with_objects(self, keyframe: Keyframe) -> Keyframe:
         if self.objects is None or keyframe.image is None:

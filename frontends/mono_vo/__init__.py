@@ -3,8 +3,9 @@ relocalisation and map segments (ORB-SLAM's tracking design on OpenCV, scipy and
 
 Modules: ``config`` (settings), ``features`` (ORB on a grid, vectorised matching), ``initializer``
 (two-view H/E model selection), ``tracker`` (local-map tracking, relocalisation), ``map`` (points
-and keyframes of a segment), ``local_ba`` (GTSAM bundle adjustment), ``frontend`` (the state
-machine). Registered in ``frontends.base.FRONTENDS`` as ``mono-vo``.
+and keyframes of a segment), ``local_ba`` (GTSAM bundle adjustment), ``masking`` (which detected
+movable objects to keep out of the map), ``frontend`` (the state machine). Registered in
+``frontends.base.FRONTENDS`` as ``mono-vo``.
 """
 
 from __future__ import annotations

@@ -302,6 +302,75 @@ class IntrinsicsCheckSettings:
 
 
 @dataclass(frozen=True)
+class MaskingSettings:
+    """Which detected movable objects a keyframe keeps out of the map (``masking``; the detector's
+    boxes come through ``set_dynamic_objects``). DynaSLAM (monocular) masks every detected movable
+    object; DS-SLAM masks a segmented person only when its points fail its epipolar check."""
+
+    #: Judge each box on two-view evidence (moving, static, unknown); False masks every box as
+    #: the detector gives it (DynaSLAM's monocular rule) and ignores ``min_unmasked_share``.
+    check_motion: bool = True
+    #: Lowe ratio and Hamming limit of the unguided keyframe-to-partner matches (ORB-SLAM's
+    #: initialiser: 0.9 and TH_LOW 50; this frontend's triangulation: 0.8 and 60).
+    match_ratio: float = 0.8
+    max_hamming: int = 60
+    #: Largest image displacement of a match (fraction of the image diagonal; init's 0.25).
+    max_flow_fraction: float = 0.25
+    #: A match violates the camera motion beyond this distance from its epipolar line (pyramid-level
+    #: sigmas; sqrt of chi2(1 dof, 95 %) = 1.96, DS-SLAM uses 1 px) ...
+    epipolar_sigmas: float = 2.0
+    #: ... or when it triangulates behind a camera with at least this parallax (deg).
+    min_parallax_deg: float = 1.0
+    #: Matches a box needs for a verdict; fewer leave it "unknown".
+    min_matches: int = 10
+    #: A judged box is moving when its violations are too many to be chance (one-sided binomial
+    #: test at ``significance``) at a rate of ``moving_ratio`` times the background's share (false
+    #: matches, pose error), or ``min_violation_rate`` if higher; else it is static.
+    moving_ratio: float = 2.0
+    min_violation_rate: float = 0.1
+    significance: float = 0.01
+    #: No verdict at all when more than this share of the background's matches violate the motion
+    #: (KITTI clip: at most 0.16; a wrong pose, or boxes that leave only a strip just uncovered).
+    max_background_share: float = 0.3
+    #: A box overlapping a box judged moving in a keyframe at most ``follow_seconds`` before
+    #: (intersection over union >= ``follow_iou``) is moving: an object moving parallel to the
+    #: camera fits the epipolar geometry (at a wrong depth), and a walking person does not stop
+    #: between two keyframes.
+    follow_iou: float = 0.3
+    follow_seconds: float = 1.0
+    #: A box is static only if the median depth of its consistent matches is at most this many
+    #: times that of the consistent matches around it (outside every box, within ``ring_fraction``
+    #: of its size; at least ``min_ring_matches``): an object moving along the camera's direction
+    #: fits the epipolar geometry at a wrong depth and, moving with the camera, lands behind what
+    #: it hides (synthetic figure8 1: 2.2x and 1.6x; KITTI clip's parked cars: 0.1-1.1x).
+    max_depth_ratio: float = 1.3
+    ring_fraction: float = 0.5
+    min_ring_matches: int = 5
+    #: Keypoints outside the boxes matched to measure the background's share (seeded sample).
+    background_sample: int = 300
+    #: Boxes without a verdict, and static ones whose class may not be kept (people, animals), are
+    #: masked only while this share of the keyframe's keypoints stays unmasked; moving boxes always
+    #: are, static vehicles never (the provider's fifth value per box).
+    min_unmasked_share: float = 0.6
+
+    def __post_init__(self) -> None:
+        shares = ("min_violation_rate", "significance", "min_unmasked_share", "max_background_share")
+        positive = ("max_flow_fraction", "epipolar_sigmas", "moving_ratio", "max_depth_ratio")
+        counts = ("min_matches", "min_ring_matches", "background_sample")
+        bad = [f"{key} must be in [0, 1]" for key in shares if not 0 <= getattr(self, key) <= 1]
+        bad += [f"{key} must be positive" for key in positive if not getattr(self, key) > 0]
+        bad += [f"{key} must be >= 1" for key in counts if not getattr(self, key) >= 1]
+        bad += [f"{key} must be >= 0" for key in ("min_parallax_deg", "follow_seconds", "ring_fraction")
+                if not getattr(self, key) >= 0]  # fmt: skip
+        if not 0 < self.match_ratio <= 1:
+            bad.append("match_ratio must be in (0, 1]")
+        if not 0 < self.follow_iou <= 1:
+            bad.append("follow_iou must be in (0, 1]")
+        if bad:
+            raise ConfigError(f"masking: {'; '.join(bad)}")
+
+
+@dataclass(frozen=True)
 class MonoVoConfig:
     seed: int = 0
     #: Frames with fewer features than this (640x480 reference) are "lost" without further work.
@@ -313,3 +382,4 @@ class MonoVoConfig:
     ba: BundleAdjustmentSettings = field(default_factory=BundleAdjustmentSettings)
     relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
     intrinsics_check: IntrinsicsCheckSettings = field(default_factory=IntrinsicsCheckSettings)
+    masking: MaskingSettings = field(default_factory=MaskingSettings)

@@ -47,10 +47,11 @@ from scipy.spatial import cKDTree
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, hamming, octave_sigmas
-from frontends.mono_vo.geometry import invert, linear_map, transform
+from frontends.mono_vo.geometry import frame_seed, invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
+from frontends.mono_vo.masking import Partner, dynamic_keypoints, follow_moving, inside, judge_boxes
 from frontends.mono_vo.tracker import PoseEstimate, Tracker
 from frontends.mono_vo.triangulation import triangulate_new_points
 from frontends.types import CameraIntrinsics, Frame, Keyframe
@@ -100,6 +101,8 @@ class MonoVo:
         #: path of the initialisation reference frame (the provider may look frames up by path).
         self.dynamic_objects: Callable[[Frame], Sequence[Sequence[float]]] | None = None
         self.reference_path: str | None = None
+        #: The newest keyframe's timestamp and its boxes judged moving (``masking.follow_iou``).
+        self.moving_boxes: tuple[float, list[tuple[float, float, float, float]]] = (-np.inf, [])
         self.intrinsics_warned = False
         #: Seconds spent per stage (orb, initialise, track, keyframe, bundle_adjustment, relocalise);
         #: "orb" is the wait for the features, which is less than extraction when they are prefetched.
@@ -157,6 +160,9 @@ class MonoVo:
         )
         first = self._new_keyframe(reference_frame, np.eye(4), init.reference)
         second = self._new_keyframe(frame, init.T_cw, features)
+        first_boxes, second_boxes = self._boxes(reference_frame), self._boxes(frame)
+        first.dynamic = self._dynamic_keypoints(first, first_boxes, second)
+        second.dynamic = self._dynamic_keypoints(second, second_boxes, first)
         static = ~first.dynamic[init.reference_idx] & ~second.dynamic[init.current_idx]
         ids = self.segment_map.points.add(init.points_w[static], first.id)
         self.segment_map.observe(first, init.reference_idx[static], ids)
@@ -334,12 +340,16 @@ class MonoVo:
     def _add_keyframe(self, frame: Frame, features: Features, estimate: PoseEstimate) -> KeyframeState:
         previous = self.segment_map.keyframes[-1]
         keyframe = self._new_keyframe(frame, estimate.T_cw, features)
+        neighbours = self._triangulation_neighbours(keyframe, estimate)
+        keyframe.dynamic = self._dynamic_keypoints(
+            keyframe, self._boxes(frame), neighbours[0] if neighbours else previous
+        )
         static = ~keyframe.dynamic[estimate.keypoint_idx]
         self.segment_map.observe(keyframe, estimate.keypoint_idx[static], estimate.point_ids[static])
         # A map point matched inside a moving object's box lies on it (the object hides what is
         # behind): it was mapped while the detector missed the object, and it moves.
         self.segment_map.points.alive[estimate.point_ids[~static]] = False
-        for neighbour in self._triangulation_neighbours(keyframe, estimate):
+        for neighbour in neighbours:
             triangulate_new_points(
                 self.segment_map, keyframe, neighbour, self.K, self.octave_sigma, self.config.keyframes,
                 self.config.tracking.inlier_threshold, self.triangulation_radius,
@@ -438,7 +448,7 @@ class MonoVo:
             features,
             np.full(len(features), -1, np.int64),
             output,
-            self._dynamic_keypoints(frame, features),
+            np.zeros(len(features), bool),
             self.segment_map.keyframes[-1].scale if self.segment_map.keyframes else 1.0,
         )
         self.segment_map.keyframes.append(state)
@@ -504,21 +514,49 @@ class MonoVo:
         return max(self.config.tracking.local_keyframes, self.config.ba.window + self.config.ba.max_fixed)
 
     def set_dynamic_objects(self, provider: Callable[[Frame], Sequence[Sequence[float]]] | None) -> None:
-        """Keypoints of a new keyframe inside any box ``provider(frame)`` returns (objects that move
-        on their own: people, vehicles, animals) never become or observe map points (DynaSLAM masks
-        them for the same reason): a point triangulated on a walking person fits its two views with
-        a wrong depth and, once the person fills the view, drags the pose along (measured on the
-        synthetic loops: 4-9 % ATE with moving people, 0.3-0.4 % without). Called on keyframes only,
-        so a CNN detector costs what it costs the loop detector."""
+        """Keypoints of a new keyframe inside a box ``provider(frame)`` returns (x0, y0, x1, y1 of
+        objects that can move on their own: people, vehicles, animals) never become or observe map
+        points (DynaSLAM masks them for the same reason): a point triangulated on a walking person
+        fits its two views with a wrong depth and, once the person fills the view, drags the pose
+        along (measured on the synthetic loops: 4-9 % ATE with moving people, 0.3-0.4 % without).
+        A box with a fifth value > 0 (a vehicle, often parked) stays in the map when its points fit
+        the camera motion; boxes not seen to move are masked only while enough of the image stays
+        unmasked (``masking``; docs/2026-12-06-masking.md). Called on keyframes only, so a CNN
+        detector costs what it costs the loop detector."""
         self.dynamic_objects = provider
 
-    def _dynamic_keypoints(self, frame: Frame, features: Features) -> np.ndarray:
-        dynamic = np.zeros(len(features), bool)
-        if self.dynamic_objects is None or len(features) == 0:
-            return dynamic
-        xy = features.keypoints
-        for x0, y0, x1, y1 in self.dynamic_objects(frame):
-            dynamic |= (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
+    def _boxes(self, frame: Frame) -> list[Sequence[float]]:
+        """The provider's boxes (x0, y0, x1, y1[, may_keep]) of ``frame``."""
+        return [] if self.dynamic_objects is None else list(self.dynamic_objects(frame))
+
+    def _dynamic_keypoints(
+        self, keyframe: KeyframeState, boxes: Sequence[Sequence[float]], partner: KeyframeState
+    ) -> np.ndarray:
+        """Which of the keyframe's keypoints to keep out of the map (``masking.dynamic_keypoints``),
+        its ``boxes`` judged against the ``partner`` keyframe."""
+        features, settings = keyframe.features, self.config.masking
+        if not boxes or len(features) == 0:
+            return np.zeros(len(features), bool)
+        if not settings.check_motion:
+            return np.any([inside(features.keypoints, box) for box in boxes], axis=0)
+        may_keep = [len(box) > 4 and float(box[4]) > 0 for box in boxes]
+        evidence, background = judge_boxes(
+            boxes, features, keyframe.T_cw, Partner(partner.features, partner.T_cw), self.K,
+            self.octave_sigma, float(np.hypot(self.camera.width, self.camera.height)), settings,
+            frame_seed(self.config.seed, keyframe.frame_index, 5),
+        )  # fmt: skip
+        # A keyframe whose detector saw nothing keeps the memory: detectors miss objects now and then.
+        since, moving_before = self.moving_boxes
+        recent = moving_before if keyframe.timestamp - since <= settings.follow_seconds else []
+        evidence = follow_moving(evidence, recent, settings.follow_iou)
+        self.moving_boxes = (keyframe.timestamp, [e.box for e in evidence if e.verdict == "moving"])
+        dynamic = dynamic_keypoints(features.keypoints, evidence, may_keep, settings)
+        log.debug(
+            "frame %d (against frame %d): %d of %d keypoints masked; background violations %.2f; "
+            "boxes (verdict, keypoints, matches, violations, depth ratio) %s",
+            keyframe.frame_index, partner.frame_index, int(dynamic.sum()), len(features), background,
+            [(e.verdict, e.keypoints, e.matches, e.violations, round(e.depth_ratio, 2)) for e in evidence],
+        )  # fmt: skip
         return dynamic
 
     def _bundle_adjust(self) -> None:
