@@ -51,7 +51,7 @@ line of defence.
 A frontend that raises on a frame costs only that frame (logged with the image path, counted lost);
 failing object/loop detectors and verifiers cost one keyframe or candidate (counted), a verifier
 past ``loop_closing.verify_timeout_s`` its candidate (reason "timeout"). ``--inject`` injects
-faults to try this (``eval.inject``; README "What we test against"). When the run
+faults to try this (``eval.inject``; docs/what-we-test-against.md). When the run
 stops early (Ctrl-C, an unreadable image with --strict), whatever was processed is written before
 the error is re-raised.
 
@@ -189,7 +189,7 @@ def add_parser(subparsers: Any) -> None:
         "--inject",
         metavar="KIND[:RATE],...",
         help="debug: inject faults into the run, RATE = fraction of frames or plugin calls hit. Kinds: "
-        f"{', '.join(KINDS)} (see eval/inject.py and the README, 'What we test against')",
+        f"{', '.join(KINDS)} (see eval/inject.py and docs/what-we-test-against.md)",
     )
     parser.add_argument(
         "--inject-seed", type=int, default=0, metavar="N", help="seed of the --inject choices (default 0)"
