@@ -31,10 +31,10 @@ import numpy as np
 from eval.lcd_eval import figures_of, run_lcd
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
+from frontends.orb import OrbConfig
 from frontends.synth import SynthConfig, cached_scene
 from frontends.synth.world import TrajectoryKind
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector
-from lcd.features import OrbConfig
 
 DEFAULT_DETECTORS = "vbow,symbiolcd,symbiolcd2-flat,symbiolcd2-two-tier,symbiolcd2"
 SYNTHETIC_SCENES: tuple[tuple[TrajectoryKind, int], ...] = (

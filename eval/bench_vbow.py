@@ -22,9 +22,9 @@ import numpy as np
 
 from eval.bench_synth import pin_to_one_core
 from frontends.cli_common import add_json_option, print_figures, write_json
+from frontends.orb import OrbConfig, extract_orb
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
-from lcd.features import OrbConfig, extract_orb
 from lcd.vbow import DEFAULT_VOCABULARY
 from lcd.vocabulary import BowDatabase, Vocabulary
 

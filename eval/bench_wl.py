@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 
 from frontends.cli_common import add_json_option, print_figures, write_json
+from frontends.orb import OrbConfig, extract_orb
 from frontends.synth import SynthConfig, render_frames
 from frontends.types import DetectedObject
-from lcd.features import OrbConfig, extract_orb
 from lcd.graph import LabelledGraph, build_graph
 from lcd.objects.filtering import filter_objects
 from lcd.symbiolcd2 import SymbioLCD2Config

@@ -53,9 +53,9 @@ from frontends.datasets import Dataset, open_dataset
 from frontends.datasets.base import every_period
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
+from frontends.orb import OrbConfig, extract_orb
 from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopCandidate, LoopDetector, ObjectDetector
-from lcd.features import OrbConfig, extract_orb
 
 if TYPE_CHECKING:
     from slam_backend.verify import VerifierConfig

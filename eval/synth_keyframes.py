@@ -10,9 +10,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from frontends.orb import OrbConfig, extract_orb
 from frontends.synth.render import SceneRenderer
 from frontends.types import CameraIntrinsics, Keyframe
-from lcd.features import OrbConfig, extract_orb
 
 
 def scene_camera(renderer: SceneRenderer) -> CameraIntrinsics:

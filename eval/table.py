@@ -74,11 +74,11 @@ from frontends.cli_common import add_json_option, write_json
 from frontends.config import apply_mapping, config_to_dict, parse_override, read_yaml_mapping
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, SymbioError
+from frontends.orb import OrbConfig
 from frontends.safe_yaml import short_repr
 from frontends.synth import SynthConfig
 from frontends.synth.world import TrajectoryKind
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector
-from lcd.features import OrbConfig
 from lcd.symbiolcd import load_table, save_table
 
 log = logging.getLogger(__name__)

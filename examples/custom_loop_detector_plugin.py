@@ -48,10 +48,10 @@ from eval.cli import main as symbio
 from eval.lcd_eval import figures_of, run_lcd
 from frontends.config import load_config
 from frontends.datasets import open_dataset
+from frontends.orb import OrbConfig
 from frontends.synth import SynthConfig, write_scene
 from frontends.types import Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopCandidate
-from lcd.features import OrbConfig
 
 PLUGIN_NAME = "thumbnail"
 ENTRY_POINT = f"{Path(__file__).stem}:create"  # module:attribute, like "my_package.thumbnail:create"

@@ -7,7 +7,7 @@ With two image paths, those images are used and their objects come from an objec
 (``--object-detector``, default ``ssd-mobilenet``; ``none`` for features only); the two images
 are taken to be a minute apart, so the temporal penalty is negligible.
 
-For each image: ORB features (``lcd.features.extract_orb``), objects, a ``Keyframe``. Both go to
+For each image: ORB features (``frontends.orb.extract_orb``), objects, a ``Keyframe``. Both go to
 ``lcd.symbiolcd2.create(["temporal_window=0"])`` (the default window of 10 keyframes would hide the
 first keyframe from the second); the second ``add`` returns the candidate "keyframe 1 revisits
 keyframe 0" with score = WL kernel - temporal penalty.
@@ -24,11 +24,11 @@ import cv2
 import numpy as np
 
 from frontends.gt_loops import LoopLabelConfig, label_loop_pairs
+from frontends.orb import extract_orb
 from frontends.synth import SceneRenderer, SynthConfig
 from frontends.types import DetectedObject, Keyframe
 from lcd import symbiolcd2
 from lcd.base import OBJECT_DETECTORS
-from lcd.features import extract_orb
 
 # A 20 s synthetic loop (1.4 laps): frames 400+ revisit the start of the first lap.
 SCENE = SynthConfig(seed=1, trajectory="loop", frames=600)

@@ -34,9 +34,9 @@ from frontends.base import TrackResult
 from frontends.config import load_config
 from frontends.datasets.base import associate_nearest
 from frontends.errors import ConfigError
+from frontends.orb import OrbConfig, extract_orb
 from frontends.trajectory_io import read_kitti_poses, read_tum
 from frontends.types import CameraIntrinsics, Frame, Keyframe
-from lcd.features import OrbConfig, extract_orb
 
 log = logging.getLogger(__name__)
 

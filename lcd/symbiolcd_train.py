@@ -26,8 +26,8 @@ from frontends.config import load_config
 from frontends.datasets import open_dataset
 from frontends.datasets.base import every_period
 from frontends.errors import ConfigError, InputFileError
+from frontends.orb import OrbConfig, extract_orb
 from frontends.types import Keyframe
-from lcd.features import OrbConfig, extract_orb
 from lcd.objects.oracle import OBJECTS_FILE, OracleConfig, OracleDetector
 from lcd.symbiolcd import FEATURE_NAMES, ShortlistBuilder, SymbioLCDConfig, TrainingTable, save_table
 from lcd.vbow import DEFAULT_VOCABULARY

@@ -21,7 +21,7 @@ from frontends.config import load_config
 from frontends.datasets import detect_format, open_dataset
 from frontends.datasets.base import decode_image, list_images
 from frontends.errors import ConfigError, DatasetError, InputFileError
-from lcd.features import OrbConfig, extract_orb
+from frontends.orb import OrbConfig, extract_orb
 from lcd.vocabulary import Vocabulary
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}

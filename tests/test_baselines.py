@@ -11,9 +11,9 @@ from eval.baselines import BASELINE_NAMES, TrainSplit, build_baseline, scaled_sy
 from eval.lcd_eval import figures_of, run_lcd
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
+from frontends.orb import OrbConfig
 from frontends.synth import write_scene
 from lcd.base import OBJECT_DETECTORS
-from lcd.features import OrbConfig
 from lcd.symbiolcd import FEATURE_NAMES, TrainingTable
 
 SPLIT = TrainSplit(scenes=("loop:110",), frames=240, width=320, height=240)

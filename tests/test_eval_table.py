@@ -200,8 +200,8 @@ def test_table_on_the_real_loop_set_matches_eval_lcd(shared: Path, tmp_path: Pat
     """The table's figures on the RTAB-Map samples are those of ``symbio eval lcd`` on the same set."""
     from eval.lcd_eval import figures_of, run_lcd
     from frontends.datasets import open_dataset
+    from frontends.orb import OrbConfig
     from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
-    from lcd.features import OrbConfig
 
     rtabmap = shared / "data" / "loops" / "rtabmap_samples"
     config = tmp_path / "real.yaml"

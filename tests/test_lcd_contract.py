@@ -12,9 +12,9 @@ from eval.cli import main as symbio_main
 from eval.lcd_eval import run_lcd
 from frontends.datasets import open_dataset
 from frontends.errors import SymbioError
+from frontends.orb import OrbConfig, extract_orb
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopCandidate, LoopDetector, ObjectDetector
-from lcd.features import OrbConfig, extract_orb
 
 
 @pytest.fixture(scope="module")

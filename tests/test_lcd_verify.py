@@ -14,9 +14,9 @@ from eval.cli import main as symbio_main
 from eval.lcd_eval import VERIFIED_COLUMNS, CandidateVerifier, figures_of, run_lcd
 from eval.lcd_metrics import summarise_verified
 from frontends.datasets import open_dataset
+from frontends.orb import OrbConfig
 from frontends.types import Keyframe
 from lcd.base import OBJECT_DETECTORS, LoopCandidate
-from lcd.features import OrbConfig
 from slam_backend.verify import VerifierConfig
 
 VERIFIED_FIGURES = (

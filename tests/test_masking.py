@@ -22,7 +22,7 @@ from eval.run import METRICS_FILE, TRAJECTORY_FILE
 from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.mono_vo import MonoVoConfig, create
-from frontends.mono_vo.config import MaskingSettings, OrbSettings
+from frontends.mono_vo.config import MaskingSettings
 from frontends.mono_vo.features import Features, OrbExtractor
 from frontends.mono_vo.geometry import invert, project, transform
 from frontends.mono_vo.masking import (
@@ -33,6 +33,7 @@ from frontends.mono_vo.masking import (
     inside,
     judge_boxes,
 )
+from frontends.orb import TRACKING_ORB
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
 from frontends.trajectory_io import read_tum
@@ -206,7 +207,7 @@ def test_rendered_person_moves_and_the_scene_beside_it_does_not(
     """Real ORB features of frames 24 and 32 with their GT poses: the walking person is judged
     moving, the static scene boxed beside it (half the image) static."""
     camera, frames, people = person_crossing
-    extractor = OrbExtractor(OrbSettings(), camera)
+    extractor = OrbExtractor(TRACKING_ORB, camera)
     partner = Partner(extractor.extract(frames[24].gray), invert(frames[24].gt_pose))
     own = extractor.extract(frames[32].gray)
     boxes = [people[32][0], car_beside(camera, people[32])]

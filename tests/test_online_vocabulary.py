@@ -15,10 +15,10 @@ from eval.lcd_eval import figures_of, run_lcd
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
 from frontends.gt_loops import read_loop_pairs
+from frontends.orb import OrbConfig, extract_orb
 from frontends.types import Keyframe
 from lcd import symbiolcd2, vbow
 from lcd.base import OBJECT_DETECTORS
-from lcd.features import OrbConfig, extract_orb
 from lcd.online_vocabulary import OnlineVocabulary, OnlineVocabularyConfig
 from lcd.vocabulary import Vocabulary
 

@@ -12,10 +12,10 @@ from eval.cli import main as symbio_main
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, InputFileError
 from frontends.gt_loops import read_loop_pairs
+from frontends.orb import extract_orb
 from frontends.synth import SynthConfig, write_scene
 from frontends.types import DetectedObject, Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopDetector
-from lcd.features import extract_orb
 from lcd.symbiolcd import (
     FEATURE_NAMES,
     NO_LAYOUT_HAUSDORFF,

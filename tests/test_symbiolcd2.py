@@ -11,9 +11,9 @@ import pytest
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
 from frontends.gt_loops import read_loop_pairs
+from frontends.orb import extract_orb
 from frontends.types import DetectedObject, Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
-from lcd.features import extract_orb
 from lcd.symbiolcd2 import SymbioLCD2, SymbioLCD2Config, create, temporal_penalty
 
 

@@ -13,10 +13,10 @@ from eval.cli import main as symbio_main
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, InputFileError
 from frontends.gt_loops import read_loop_pairs
+from frontends.orb import OrbConfig, detect_orb, extract_orb
 from frontends.synth import SynthConfig, write_scene
 from frontends.types import Keyframe
 from lcd.base import LOOP_DETECTORS, LoopDetector
-from lcd.features import OrbConfig, detect_orb, extract_orb
 from lcd.vbow import VbowConfig, VbowDetector, create
 from lcd.vocabulary import BowDatabase, BowVector, Vocabulary, empty_bow, hamming, l1_score
 
@@ -185,7 +185,7 @@ def test_extract_orb_shapes_budget_and_empty_images() -> None:
     gray = textured_image(0)
     keypoints, descriptors = extract_orb(gray)
     budget = OrbConfig().features_for(320, 240)
-    assert budget == 250
+    assert budget == 500  # the floor: a quarter of 640x480 would be 250
     assert keypoints.dtype == np.float32 and keypoints.shape[1] == 2
     assert descriptors.dtype == np.uint8 and descriptors.shape == (len(keypoints), 32)
     assert 0 < len(keypoints) <= budget

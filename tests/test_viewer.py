@@ -14,10 +14,10 @@ import pytest
 
 from frontends.base import TrackResult
 from frontends.errors import ConfigError
+from frontends.orb import OrbConfig, extract_orb
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
 from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
-from lcd.features import OrbConfig, extract_orb
 from lcd.graph import AROUND, DISTANCE, INSIDE, GraphConfig, build_graph
 from lcd.objects.filtering import filter_objects
 from slam_backend.pipeline import LoopRecord

@@ -14,25 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from frontends.errors import ConfigError
-
-#: Image area the feature budget and the count thresholds are given for.
-REFERENCE_AREA = 640 * 480
-
-
-@dataclass(frozen=True)
-class OrbSettings:
-    #: Features per 640x480 image, scaled by image area (KITTI's 1226x370 gets ~1.48x), but never
-    #: fewer than ``min_nfeatures``: small images need a denser set to initialise and track.
-    nfeatures: int = 1500
-    min_nfeatures: int = 1000
-    scale_factor: float = 1.2
-    levels: int = 8
-    fast_threshold: int = 20
-    #: Corners detected per kept feature before spreading over the grid.
-    overdetect: float = 1.5
-    #: Cells across and down the grid the features are spread over (round-robin by response).
-    grid_cols: int = 16
-    grid_rows: int = 12
+from frontends.orb import TRACKING_ORB, OrbConfig
 
 
 @dataclass(frozen=True)
@@ -375,7 +357,8 @@ class MonoVoConfig:
     seed: int = 0
     #: Frames with fewer features than this (640x480 reference) are "lost" without further work.
     min_features: int = 100
-    orb: OrbSettings = field(default_factory=OrbSettings)
+    #: ORB extraction (``frontends.orb``; the tracking preset: dense, spread, two thresholds per cell).
+    orb: OrbConfig = field(default_factory=lambda: TRACKING_ORB)
     init: InitSettings = field(default_factory=InitSettings)
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
     keyframes: KeyframeSettings = field(default_factory=KeyframeSettings)

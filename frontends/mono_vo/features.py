@@ -1,10 +1,10 @@
 """ORB features spread over the image, and the descriptor matching the tracker needs.
 
-Extraction: OpenCV's ORB pyramid (8 levels, factor 1.2) detects ``overdetect`` x the budget, then the
-features are picked round-robin over a grid of cells by response rank. ORB-SLAM spreads its
-features with a per-level quadtree for the same reason: tracking and PnP need corners everywhere,
-not only in the most textured patch. Descriptors are computed once, for all detected corners
-(cheaper than a second pyramid pass), and subset afterwards.
+Extraction: ``frontends.orb`` (shared with the loop detectors and the verifier) with the tracking
+preset: ``overdetect`` x the budget, two FAST thresholds per cell, then the features are picked
+round-robin over a grid of cells by response rank. ORB-SLAM spreads its features with a per-level
+quadtree for the same reason: tracking and PnP need corners everywhere, not only in the most
+textured patch.
 
 Matching: ``match_in_radius`` pairs projected map points with keypoints within a pixel radius (a
 k-d tree gives the candidate pairs in C), takes the Hamming distance of every candidate pair with
@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.mono_vo.config import REFERENCE_AREA, OrbSettings
+from frontends.orb import OrbConfig, detect_orb
 from frontends.types import CameraIntrinsics
 
 
@@ -63,52 +63,21 @@ def empty_features() -> Features:
 
 
 class OrbExtractor:
-    """ORB with grid spreading and undistortion of the keypoints, for one camera."""
+    """``frontends.orb`` features of one camera's images, with the keypoints undistorted."""
 
-    def __init__(self, settings: OrbSettings, camera: CameraIntrinsics) -> None:
+    def __init__(self, settings: OrbConfig, camera: CameraIntrinsics) -> None:
         self.settings = settings
         self.camera = camera
-        scaled = round(settings.nfeatures * camera.width * camera.height / REFERENCE_AREA)
-        self.budget = max(1, min(settings.nfeatures, settings.min_nfeatures), scaled)
-        self.orb = cv2.ORB.create(
-            nfeatures=max(self.budget, round(self.budget * settings.overdetect)),
-            scaleFactor=settings.scale_factor,
-            nlevels=settings.levels,
-            fastThreshold=settings.fast_threshold,
-        )
+        self.budget = settings.features_for(camera.width, camera.height)
 
     def extract(self, gray: np.ndarray) -> Features:
-        keypoints, descriptors = self.orb.detectAndCompute(gray, None)
-        if descriptors is None or not keypoints:
+        found = detect_orb(gray, self.settings)
+        if len(found) == 0:
             return empty_features()
-        xy = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
-        response = np.array([k.response for k in keypoints], dtype=np.float64)
-        octaves = np.array([k.octave for k in keypoints], dtype=np.int64)
-        angles = np.array([k.angle for k in keypoints], dtype=np.float64)
-        keep = spread_over_grid(
-            xy, response, self.camera.width, self.camera.height, self.settings.grid_cols,
-            self.settings.grid_rows, self.budget,
+        return Features(
+            found.keypoints, self.camera.undistort(found.keypoints), found.descriptors,
+            found.octaves.astype(np.int64), found.angles.astype(np.float64),
         )  # fmt: skip
-        xy = xy[keep]
-        descriptors = np.ascontiguousarray(descriptors[keep])
-        return Features(xy, self.camera.undistort(xy), descriptors, octaves[keep], angles[keep])
-
-
-def spread_over_grid(
-    xy: np.ndarray, response: np.ndarray, width: int, height: int, cols: int, rows: int, budget: int
-) -> np.ndarray:
-    """Indices of ``budget`` keypoints taken round-robin over grid cells, strongest first in each cell."""
-    if len(xy) <= budget or cols < 1 or rows < 1:
-        return np.arange(len(xy))
-    col = np.clip((xy[:, 0] * cols / width).astype(np.int64), 0, cols - 1)
-    row = np.clip((xy[:, 1] * rows / height).astype(np.int64), 0, rows - 1)
-    cell = row * cols + col
-    order = np.lexsort((-response, cell))
-    sorted_cell = cell[order]
-    rank = np.arange(len(order)) - np.searchsorted(sorted_cell, sorted_cell, side="left")
-    # Round r takes the r-th strongest corner of every cell; within a round the strongest go first.
-    picked = order[np.lexsort((-response[order], rank))[:budget]]
-    return np.sort(picked)
 
 
 def octave_sigmas(octave_sigma: np.ndarray, octaves: np.ndarray) -> np.ndarray:
