@@ -39,14 +39,14 @@ from typing import Any
 
 from eval.components import load_components
 from eval.demo import synthetic_components
-from eval.run import build_loop_closing, run_odometry
-from frontends.base import FRONTENDS
+from eval.run import build_slam, run_odometry
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
 from frontends.synth.world import SynthConfig
 from frontends.synth.writer import cached_scene
 from slam_backend.pipeline import LoopClosing
+from slam_backend.slam import Slam
 
 CONTROL = "none"
 KEYS = (
@@ -71,11 +71,12 @@ def run_scene(folder: Path, out: Path, mode: str = "full", overrides: Sequence[s
         defaults,
         overrides={s: [*defaults.of(s), *extra.of(s)] for s in {*defaults.overrides, *extra.overrides}},
     )
-    frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
-    closing = build_loop_closing(dataset, None if mode == "plain" else components)
+    slam = build_slam(dataset, components, loops=mode != "plain")
     if mode == "masked":
-        closing = LoopClosing(closing.backend, objects=closing.objects, config=closing.config)
-    return run_odometry(dataset, frontend, out, loop_closing=closing, progress=False, tolerance=3)
+        closing = slam.closing
+        masked = LoopClosing(closing.backend, objects=closing.objects, config=closing.config)
+        slam = Slam.from_parts(slam.frontend, masked)
+    return run_odometry(dataset, slam, out, progress=False, tolerance=3)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

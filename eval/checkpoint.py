@@ -2,8 +2,8 @@
 
 Every ``N`` frames the run's whole live state is pickled: the frontend (map, keyframes, velocity,
 segments), ``LoopClosing`` with its object detector, loop detector database, verifier and pose-graph
-backend, and the ``PipelineRun`` (results so far, counters, timings), with the random generators
-these objects hold (every random draw in the project comes from a seeded numpy Generator or a seed
+backend, and the ``slam_backend.slam.SlamState`` (results so far, counters, timings), with the random
+generators these objects hold (every random draw in the project comes from a seeded numpy Generator or a seed
 derived per call, never from a global RNG). Nothing is listed field by field, so new fields of any
 component are saved too. What does not pickle, or should not be copied each time:
 
@@ -229,7 +229,7 @@ class RunState:
 
     frontend: Frontend
     closing: LoopClosing
-    #: ``eval.run.PipelineRun`` (typed loosely: eval.run imports this module).
+    #: ``slam_backend.slam.SlamState`` (typed loosely: the checkpoint stays light to import).
     run: Any
     #: Index of the first frame not processed yet.
     next_index: int

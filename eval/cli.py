@@ -27,6 +27,7 @@ SUBCOMMANDS = {
     "eval": "eval.lcd_eval",
     "detectors": "eval.lcd_eval",
     "run": "eval.run_cli",
+    "config": "eval.config_cli",
 }
 #: Options of ``symbio`` itself (before the subcommand).
 TOP_LEVEL_OPTIONS = ("-v", "--verbose")

@@ -20,7 +20,6 @@ from typing import Any
 
 from eval.components import Components
 from eval.outputs import RunFolder
-from frontends.base import FRONTENDS
 from frontends.cli_common import add_json_option, write_json
 from frontends.config import config_to_dict, load_config
 from frontends.datasets import open_dataset
@@ -91,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, config: SynthConfig, folder: RunFolder) -> int:
-    from eval.run import build_loop_closing, run_odometry
+    from eval.run import build_slam, run_odometry
 
     scene_dir = folder.folder("scene")
     start = time.perf_counter()
@@ -99,8 +98,7 @@ def _run(args: argparse.Namespace, config: SynthConfig, folder: RunFolder) -> in
     render_seconds = time.perf_counter() - start
     dataset = open_dataset(scene_dir)
     components = synthetic_components()
-    frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
-    closing = build_loop_closing(dataset, components)
+    slam = build_slam(dataset, components)
     description = {
         "scene": config_to_dict(config),
         "components": {
@@ -114,9 +112,8 @@ def _run(args: argparse.Namespace, config: SynthConfig, folder: RunFolder) -> in
     }
     figures = run_odometry(
         dataset,
-        frontend,
+        slam,
         folder,
-        loop_closing=closing,
         progress=not args.no_progress,
         tolerance=3,
         config=description,

@@ -1,9 +1,10 @@
-"""The ``symbio run`` pipeline as a library: stream a dataset through a frontend and loop closing,
-measure it and write its output folder (the command line is ``eval.run_cli``; its ``--help`` says
-what every output file holds).
+"""A ``slam_backend.Slam`` run on a dataset, measured and written to an output folder: what
+``symbio run``, ``symbio demo``, the benchmarks and ``eval table`` share (the command line is
+``eval.run_cli``; its ``--help`` says what every output file holds).
 
-frontend (each frame) -> object detector, loop detector (each keyframe) -> verifier -> backend
-(``slam_backend.pipeline.LoopClosing``). ``run_odometry`` writes, into a claimed output folder
+The system itself (frontend -> object and loop detectors -> verifier -> backend, and the wiring
+between them) is ``slam_backend.slam.Slam``; ``build_slam`` makes one from registered names
+(``eval.components.Components``). ``run_odometry`` writes, into a claimed output folder
 (``eval.outputs.RunFolder``), the loop-closed and odometry trajectories, the keyframes, ``loops.csv``,
 the plots, ``report.html`` and last ``metrics.json`` (``complete`` true once everything else is in
 place).
@@ -12,20 +13,16 @@ place).
 from __future__ import annotations
 
 import contextlib
-import csv
 import itertools
 import logging
-import time
-from collections import Counter
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from evo.core import metrics
 from evo.core.geometry import GeometryException
-from evo.core.trajectory import PosePath3D, PoseTrajectory3D
+from evo.core.trajectory import PosePath3D
 from tqdm import tqdm
 
 from eval import checkpoint
@@ -45,112 +42,34 @@ from eval.report import (
     write_report,
 )
 from eval.viewer import RerunViewer
-from frontends.base import (
-    CorrectableFrontend,
-    Frontend,
-    MaskingFrontend,
-    SettlingFrontend,
-    TrackResult,
-    with_lookahead,
-)
+from frontends.base import TrackResult
 from frontends.cli_common import flat_json
 from frontends.config import load_config
 from frontends.datasets import Dataset
 from frontends.datasets.base import SKIP_CAUSES
 from frontends.errors import display_path
-from frontends.trajectory_io import write_trajectory
 from frontends.types import Frame
-from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS
 from slam_backend.pipeline import LoopClosing, LoopClosingConfig, LoopRecord
-from slam_backend.posegraph import BACKENDS, BackendConfig
-from slam_backend.verify import VERIFIERS
+from slam_backend.slam import (
+    KEYFRAMES_FILE,
+    LOOPS_FILE,
+    ODOMETRY_FILE,
+    TRAJECTORY_FILE,
+    Slam,
+    SlamResult,
+    SlamState,
+    largest_segment,
+    write_loops_csv,
+    write_poses,
+)
 
 log = logging.getLogger(__name__)
 
-TRAJECTORY_FILE = "trajectory_tum.txt"
-ODOMETRY_FILE = "trajectory_odometry_tum.txt"
-KEYFRAMES_FILE = "keyframes_tum.txt"
-LOOPS_FILE = "loops.csv"
 METRICS_FILE = "metrics.json"
 RRD_FILE = "run.rrd"
 OUTPUT_FILES = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE, METRICS_FILE, REPORT_FILE)
 #: RPE is measured over this much time (s), a few keyframes at walking speed.
 RPE_DELTA_S = 1.0
-
-
-@dataclass
-class PipelineRun:
-    """What streaming frames through the pipeline produced so far."""
-
-    results: list[TrackResult] = field(default_factory=list)
-    #: Position in ``results`` of each frame index (so backfilled results replace earlier ones).
-    positions: dict[int, int] = field(default_factory=dict)
-    frontend_failures: int = 0
-    frontend_seconds: float = 0.0
-    total_seconds: float = 0.0
-    interrupted: bool = False
-    #: Checkpoints written (``--checkpoint-every``), seconds spent writing them, size of the last.
-    checkpoints: int = 0
-    checkpoint_seconds: float = 0.0
-    checkpoint_bytes: int = 0
-    #: Checkpoints that could not be written (disk full, ...); the run went on without them.
-    checkpoint_failures: int = 0
-
-    @property
-    def tracked(self) -> list[TrackResult]:
-        return [r for r in self.results if r.pose is not None]
-
-    def add(self, result: TrackResult) -> None:
-        self.positions[result.frame_index] = len(self.results)
-        self.results.append(result)
-        for late in result.backfilled:
-            position = self.positions.get(late.frame_index)
-            if position is not None:
-                self.results[position] = late
-
-
-def track_frame(frontend: Frontend, frame: Frame, run: PipelineRun) -> TrackResult:
-    """The frontend's result for ``frame``; if it raises, the frame is lost (logged, counted)."""
-    start = time.perf_counter()
-    try:
-        result = frontend.track(frame)
-    except Exception as exc:  # plugin boundary: a failing frame must not end the run
-        run.frontend_failures += 1
-        log.warning(
-            "frontend %s failed on %s: %r; frame counted as lost",
-            frontend.name,
-            frame.path or f"frame {frame.index}",
-            exc,
-            exc_info=log.isEnabledFor(logging.DEBUG),
-        )
-        result = TrackResult(frame.index, frame.timestamp, "lost", None)
-    run.frontend_seconds += time.perf_counter() - start
-    return result
-
-
-def stream_frames(
-    frames: Iterable[Frame],
-    frontend: Frontend,
-    loop_closing: LoopClosing,
-    run: PipelineRun,
-    viewer: RerunViewer | None = None,
-    after_frame: Callable[[Frame], None] | None = None,
-) -> None:
-    """Each frame through the frontend and loop closing; ``after_frame`` (e.g. a checkpoint) runs
-    once the frame is done, outside the timings."""
-    for frame in with_lookahead(frames, frontend):
-        start = time.perf_counter()
-        result = track_frame(frontend, frame, run)
-        run.add(result)
-        loop_closing.add(result, frame)
-        run.total_seconds += time.perf_counter() - start
-        if viewer is not None:
-            viewer.frame(frame, result)
-        if after_frame is not None:
-            after_frame(frame)
-    start = time.perf_counter()
-    loop_closing.finish()  # the last keyframes settle when the stream ends
-    run.total_seconds += time.perf_counter() - start
 
 
 def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
@@ -161,48 +80,30 @@ def attach_viewer(viewer: RerunViewer, closing: LoopClosing) -> None:
     )
 
 
-def global_ba_figures(closing: LoopClosing) -> dict[str, Any]:
-    """What the global bundle adjustment did (``global_ba`` false: it did not run)."""
-    adjusted = closing.adjusted
-    if adjusted is None:
-        return {"global_ba": False}
-    s = adjusted.stats
-    return {
-        "global_ba": True,
-        "global_ba_keyframes": s.keyframes,
-        "global_ba_points": s.points,
-        "global_ba_loop_observations": s.loop_observations,
-        "global_ba_fused_observations": s.fused_observations,
-        "global_ba_median_error_px_before": s.median_error_before_px,
-        "global_ba_median_error_px_after": s.median_error_after_px,
-        "frames_reposed": closing.frames_reposed,
-    }
-
-
-def build_loop_closing(dataset: Dataset, components: Components | None) -> LoopClosing:
-    """The loop-closing half for ``components``; None or ``--no-loops``: the backend chain only."""
+def build_slam(dataset: Dataset, components: Components | None, *, loops: bool = True) -> Slam:
+    """The system of ``components`` (default: ``Components()``) for ``dataset``'s camera;
+    ``loops=False`` (``--no-loops``): odometry only, the backend holding the keyframe chain. The
+    object detector defaults to the oracle on synthetic scenes (their GT objects), else the CNN."""
     c = components or Components()
-    backend = BACKENDS.load(c.backend)(load_config(BackendConfig, None, c.of("backend")))  # type: ignore[call-arg]
-    config = load_config(LoopClosingConfig, None, c.of("loop_closing"))
-    if components is None:
-        return LoopClosing(backend, config=config)
-    object_name = c.object_detector or default_object_detector(dataset)
-    return LoopClosing(
-        backend,
-        LOOP_DETECTORS.load(c.detector)(c.of("detector")),
-        OBJECT_DETECTORS.load(object_name)(c.of("object_detector")),
-        VERIFIERS.load(c.verifier)(dataset.camera, c.of("verifier")),
-        config,
-        camera=dataset.camera,
+    return Slam(
+        dataset.camera,
+        frontend=c.frontend,
+        loop_detector=c.detector if loops else None,
+        object_detector=c.object_detector or default_object_detector(dataset),
+        verifier=c.verifier,
+        backend=c.backend,
+        loop_closing=load_config(LoopClosingConfig, None, c.of("loop_closing")),
+        overrides={
+            part: c.of(part) for part in ("frontend", "detector", "object_detector", "verifier", "backend")
+        },
     )
 
 
 def run_odometry(
     dataset: Dataset,
-    frontend: Frontend,
+    slam: Slam,
     out: Path | RunFolder,
     *,
-    loop_closing: LoopClosing | None = None,
     max_frames: int | None = None,
     progress: bool = True,
     tolerance: int = 0,
@@ -211,23 +112,22 @@ def run_odometry(
     checkpointer: Checkpointer | None = None,
     resume: RunState | None = None,
 ) -> dict[str, Any]:
-    """Stream ``dataset`` through ``frontend`` (and ``loop_closing``, default: odometry only), write
-    the trajectories, loops and metrics to ``out``; returns the figures of ``metrics.json``.
+    """Stream ``dataset`` through ``slam`` (``build_slam``, or ``Slam.from_parts`` for a restored
+    run), write the trajectories, loops and metrics to ``out``; returns the figures of ``metrics.json``.
 
     ``out``: a claimed ``RunFolder``, or a folder path that is claimed for the call (refused when it
     holds files symbio did not write, or another command is writing there: see ``eval.outputs``).
 
     ``checkpointer`` saves the state every N frames (deleted once the outputs are written);
-    ``resume``: the state of a checkpoint (its ``frontend`` and ``closing`` must be the ones passed),
-    whose processed frames are skipped. If anything stops the run early (including
-    KeyboardInterrupt), what was processed is written first and the exception re-raised.
+    ``resume``: the state of a checkpoint (``slam`` must be built from its parts), whose processed
+    frames are skipped. If anything stops the run early (including KeyboardInterrupt), what was
+    processed is written first and the exception re-raised.
     """
     with contextlib.ExitStack() as stack:
         folder = out if isinstance(out, RunFolder) else stack.enter_context(run_folder(out))
         return _run_into(
-            folder, dataset, frontend, loop_closing, max_frames, progress, tolerance, config, viewer,
-            checkpointer, resume,
-        )  # fmt: skip
+            folder, dataset, slam, max_frames, progress, tolerance, config, viewer, checkpointer, resume
+        )
 
 
 def run_folder(
@@ -253,8 +153,7 @@ def run_folder(
 def _run_into(
     folder: RunFolder,
     dataset: Dataset,
-    frontend: Frontend,
-    loop_closing: LoopClosing | None,
+    slam: Slam,
     max_frames: int | None,
     progress: bool,
     tolerance: int,
@@ -263,20 +162,9 @@ def _run_into(
     checkpointer: Checkpointer | None,
     resume: RunState | None,
 ) -> dict[str, Any]:
-    closing = loop_closing if loop_closing is not None else build_loop_closing(dataset, None)
-    if (
-        closing.detector is not None
-        and closing.config.correct_frontend
-        and isinstance(frontend, CorrectableFrontend)
-    ):
-        closing.on_correction = frontend.apply_correction
-    if closing.config.settle_keyframes is None and isinstance(frontend, SettlingFrontend):
-        closing.settle_keyframes = frontend.keyframes_in_flux
-    if closing.objects is not None and isinstance(frontend, MaskingFrontend):
-        frontend.set_dynamic_objects(closing.movable_boxes)
     if viewer is not None:
-        attach_viewer(viewer, closing)
-    run = PipelineRun() if resume is None else resume.run
+        attach_viewer(viewer, slam.closing)
+    state = slam.state
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     stream: Iterable[Frame] = (
         itertools.islice(dataset, max_frames)
@@ -285,33 +173,36 @@ def _run_into(
     )
     if checkpointer is not None:
         stream = checkpointer.track(stream)
-    after_frame = (
-        (lambda frame: checkpointer.after_frame(frame, frontend, closing, run)) if checkpointer else None
-    )
+
+    def after_frame(frame: Frame, result: TrackResult) -> None:
+        if viewer is not None:
+            viewer.frame(frame, result)
+        if checkpointer is not None:
+            checkpointer.after_frame(frame, slam.frontend, slam.closing, state)
+
     try:
         with tqdm(
             stream,
             total=total,
-            initial=len(run.results),
+            initial=len(state.results),
             disable=not progress,
             unit="frame",
-            desc=f"run {frontend.name}",
+            desc=f"run {slam.frontend.name}",
         ) as frames:
-            stream_frames(frames, frontend, closing, run, viewer, after_frame)
+            result = slam.run(frames, after_frame)
     except BaseException:
-        run.interrupted = True
-        log.warning("run stopped after %d frames; writing what exists to %s", len(run.results), folder.root)
-        closing.finish()
-        write_outputs(folder, dataset, frontend, closing, run, tolerance, config or {}, viewer)
+        state.interrupted = True
+        log.warning("run stopped after %d frames; writing what exists to %s", len(state.results), folder.root)
+        write_outputs(folder, dataset, slam.finish(), state, tolerance, config or {}, viewer)
         raise
-    figures = write_outputs(folder, dataset, frontend, closing, run, tolerance, config or {}, viewer)
-    if run.results and all(r.pose is None for r in run.results):
+    figures = write_outputs(folder, dataset, result, state, tolerance, config or {}, viewer)
+    if state.results and all(r.pose is None for r in state.results):
         log.warning(
             "%s posed none of the %d frames: it never initialised. Likely causes: too little parallax "
             "(a camera that stands still or only rotates), too much motion between frames (a low frame "
             "rate or skipped frames), too few features (dark, blurred or textureless images), or wrong "
             "intrinsics",
-            frontend.name, len(run.results),
+            slam.frontend.name, len(state.results),
         )  # fmt: skip
     if checkpointer is not None:
         checkpoint.discard(folder.root)
@@ -321,65 +212,37 @@ def _run_into(
 def write_outputs(
     folder: RunFolder,
     dataset: Dataset,
-    frontend: Frontend,
-    closing: LoopClosing,
-    run: PipelineRun,
+    result: SlamResult,
+    state: SlamState,
     tolerance: int,
     config: dict[str, Any],
     viewer: RerunViewer | None = None,
 ) -> dict[str, Any]:
-    final = closing.frame_poses(corrected=True)
-    odometry = closing.frame_poses(corrected=False)
     if viewer is not None:
-        viewer.trajectories(final, odometry)
+        viewer.trajectories(result.trajectory, result.odometry)
         viewer.close()
     with folder.atomic(TRAJECTORY_FILE) as path:
-        write_poses(path, [p for _, _, p in final], [t for _, t, _ in final])
+        write_poses(path, result.trajectory)
     with folder.atomic(ODOMETRY_FILE) as path:
-        write_poses(path, [p for _, _, p in odometry], [t for _, t, _ in odometry])
-    keyframes = closing.keyframes
-    corrected = closing.corrected_keyframe_poses()
+        write_poses(path, result.odometry)
+    keyframes = result.keyframes
     with folder.atomic(KEYFRAMES_FILE) as path:
-        write_poses(path, [corrected[k.id] for k in keyframes], [k.timestamp for k in keyframes])
-    loops = closing.loops()
+        write_poses(path, [(k.frame_index, k.timestamp, result.keyframe_poses[k.id]) for k in keyframes])
     with folder.atomic(LOOPS_FILE) as path:
-        write_loops_csv(path, loops, loop_pose_errors(dataset, loops))
-    figures = run_figures(dataset, frontend, closing, run, final, odometry, loops, tolerance)
-    images = write_plots(folder, dataset, odometry, final, loops, {k.id: k.frame_index for k in keyframes})
-    write_report(folder, figures, config, images, loops)
+        write_loops_csv(path, result.loops, loop_pose_errors(dataset, result.loops))
+    figures = run_figures(dataset, result, state, tolerance)
+    images = write_plots(
+        folder,
+        dataset,
+        result.odometry,
+        result.trajectory,
+        result.loops,
+        {k.id: k.frame_index for k in keyframes},
+    )
+    write_report(folder, figures, config, images, result.loops)
     # Last: a metrics.json that says "complete" means every other output above is in place.
     folder.write_text(METRICS_FILE, flat_json(figures))
     return figures
-
-
-def write_poses(path: Path, poses: list[np.ndarray], timestamps: list[float]) -> None:
-    if not poses:  # evo cannot build an empty trajectory; an empty file says "no poses" just as well
-        path.write_text("", encoding="utf-8")
-        return
-    trajectory = PoseTrajectory3D(poses_se3=poses, timestamps=np.asarray(timestamps, dtype=np.float64))
-    write_trajectory(path, trajectory, "tum")
-
-
-def write_loops_csv(
-    path: Path, loops: list[LoopRecord], errors: list[LoopPoseError | None] | None = None
-) -> None:
-    """One row per verified candidate; with GT poses also how far its constraint is from the GT."""
-    columns = [
-        "query", "match", "query_frame", "match_frame", "score", "verified", "inliers", "accepted",
-        "scale", "reason", "gt_rotation_error_deg", "gt_direction_error_deg",
-    ]  # fmt: skip
-    with path.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        for r, error in zip(loops, errors or [None] * len(loops), strict=True):
-            writer.writerow(
-                [
-                    r.query, r.match, r.query_frame, r.match_frame, f"{r.score:.6g}", int(r.verified),
-                    r.inliers, int(r.accepted), f"{r.scale:.6g}", r.reason,
-                    "" if error is None else f"{error.rotation_deg:.3f}",
-                    "" if error is None else f"{error.direction_deg:.2f}",
-                ]
-            )  # fmt: skip
 
 
 def loop_pose_errors(dataset: Dataset, loops: list[LoopRecord]) -> list[LoopPoseError | None]:
@@ -396,48 +259,24 @@ def loop_pose_errors(dataset: Dataset, loops: list[LoopRecord]) -> list[LoopPose
     return errors
 
 
-def run_figures(
-    dataset: Dataset,
-    frontend: Frontend,
-    closing: LoopClosing,
-    run: PipelineRun,
-    final: list[tuple[int, float, np.ndarray]],
-    odometry: list[tuple[int, float, np.ndarray]],
-    loops: list[LoopRecord],
-    tolerance: int,
-) -> dict[str, Any]:
-    tracked = run.tracked
-    keyframes = closing.keyframes
-    segments = {r.segment for r in tracked} | {k.segment for k in keyframes}
-    per_segment = Counter(r.segment for r in tracked)
-    segment = min(per_segment, key=lambda s: (-per_segment[s], s)) if per_segment else None
-    in_segment = {r.frame_index for r in tracked if r.segment == segment}
-    before = trajectory_errors(dataset, [p for p in odometry if p[0] in in_segment])
-    after = trajectory_errors(dataset, [p for p in final if p[0] in in_segment])
-    after_all = trajectory_errors(dataset, final)
-    counters = closing.counters
-    frames = max(len(run.results), 1)
+def run_figures(dataset: Dataset, result: SlamResult, state: SlamState, tolerance: int) -> dict[str, Any]:
+    """``result.figures`` with the dataset's: ATE/RPE against its GT, skipped frames, injected
+    faults, loop truth, and the run's checkpoints."""
+    segment = largest_segment(state)
+    in_segment = {r.frame_index for r in state.tracked if r.segment == segment}
+    before = trajectory_errors(dataset, [p for p in result.odometry if p[0] in in_segment])
+    after = trajectory_errors(dataset, [p for p in result.trajectory if p[0] in in_segment])
+    after_all = trajectory_errors(dataset, result.trajectory)
+    own = result.figures
     figures: dict[str, Any] = {
         "dataset": display_path(dataset.root),
         "format": dataset.format_name,
-        "frontend": frontend.name,
-        "loop_closing": closing.detector is not None,
-        "detector": closing.detector.name if closing.detector is not None else None,
-        "frames": len(run.results),
-        "frames_tracked": len(tracked),
-        "tracking_lost": sum(r.state == "lost" for r in run.results),
-        "frames_initialising": sum(r.state == "initialising" and r.pose is None for r in run.results),
-        "frontend_failures": run.frontend_failures,
+        **own,
         "frames_skipped": len(dataset.skipped),
         **{
             f"frames_skipped_{cause.replace(' ', '_')}": sum(s.cause == cause for s in dataset.skipped)
             for cause in SKIP_CAUSES
         },
-        "keyframes": len(keyframes),
-        "segments": len(segments),
-        "fps": len(run.results) / run.total_seconds if run.total_seconds > 0 else None,
-        "ms_per_frame_frontend": 1e3 * run.frontend_seconds / frames,
-        **{f"ms_per_frame_{k}": 1e3 * v / frames for k, v in sorted(counters.seconds.items())},
         "ate_rmse_before": before[0],
         "ate_rmse_after": after[0],
         "ate_rmse_after_all": after_all[0],
@@ -445,29 +284,19 @@ def run_figures(
         "rpe_rmse_after": after[1],
         "ate_segment": segment if before[0] is not None else None,
         "ate_frames": before[2],
-        "path_length": gt_path_length(dataset, run.results),
-        "loops_proposed": len(loops),
-        "loops_verified": sum(r.verified for r in loops),
-        "loops_accepted": sum(r.accepted for r in loops),
-        # Candidates whose map was too thin at first (``LoopClosingConfig.defer_retries``).
-        "loops_deferred": sum(r.deferrals > 0 for r in loops),
-        "loops_accepted_after_deferral": sum(r.accepted and r.deferrals > 0 for r in loops),
-        "loops_accepted_two_view_join": sum(r.accepted and r.two_view for r in loops),
-        **global_ba_figures(closing),
-        "object_detector_failures": counters.object_detector_failures,
-        "loop_detector_failures": counters.loop_detector_failures,
-        "verifier_failures": counters.verifier_failures,
-        "verifier_timeouts": counters.verifier_timeouts,
+        "path_length": gt_path_length(dataset, state.results),
         **(dataset.injection.figures() if isinstance(dataset, InjectedDataset) else {}),
-        "interrupted": run.interrupted,
+        "interrupted": state.interrupted,
         # metrics.json is written after every other output: true means all of them are in place.
-        "complete": not run.interrupted,
-        "checkpoints": run.checkpoints,
-        "ms_per_checkpoint": 1e3 * run.checkpoint_seconds / run.checkpoints if run.checkpoints else None,
-        "checkpoint_bytes": run.checkpoint_bytes if run.checkpoints else None,
-        "checkpoint_failures": run.checkpoint_failures,
+        "complete": not state.interrupted,
+        "checkpoints": state.checkpoints,
+        "ms_per_checkpoint": 1e3 * state.checkpoint_seconds / state.checkpoints
+        if state.checkpoints
+        else None,
+        "checkpoint_bytes": state.checkpoint_bytes if state.checkpoints else None,
+        "checkpoint_failures": state.checkpoint_failures,
     }
-    figures.update(loop_truth(dataset, loops, keyframes, tolerance))
+    figures.update(loop_truth(dataset, result.loops, result.keyframes, tolerance))
     return figures
 
 

@@ -344,8 +344,9 @@ def _run_claimed(
     """``symbio run`` once its output folder is claimed."""
     from eval import checkpoint
     from eval.checkpoint import Checkpointer, CheckpointError
-    from eval.run import OUTPUT_FILES, RRD_FILE, build_loop_closing, run_odometry
+    from eval.run import OUTPUT_FILES, RRD_FILE, build_slam, run_odometry
     from eval.viewer import RerunViewer
+    from slam_backend.slam import Slam
 
     if injection is not None:
         dataset = injection.wrap_dataset(dataset)
@@ -354,10 +355,9 @@ def _run_claimed(
         checkpointer = Checkpointer(args.out, args.checkpoint_every, spec, dataset, folder.path)
     resume = None
     if header is None:
-        frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
-        closing = build_loop_closing(dataset, None if args.no_loops else components)
+        slam = build_slam(dataset, components, loops=not args.no_loops)
         if injection is not None:
-            injection.wrap_plugins(closing, dataset)
+            injection.wrap_plugins(slam.closing, dataset)
     else:
         if spec["components"] != header["spec"]["components"]:
             raise CheckpointError(
@@ -368,7 +368,7 @@ def _run_claimed(
         checkpoint.check_dataset(header, dataset, args.out, fingerprint)
         images = checkpointer.images if checkpointer is not None else checkpoint.FrameImages()
         resume = checkpoint.load_state(header, args.out, dataset, images)
-        frontend, closing = resume.frontend, resume.closing
+        slam = Slam.from_parts(resume.frontend, resume.closing, resume.run)
         where = display_path(args.out)
         print(f"resuming {where} after {header['frames']} frames (next frame {resume.next_index})")
     for note in dataset.notes:
@@ -380,18 +380,17 @@ def _run_claimed(
     )
     figures = run_odometry(
         dataset,
-        frontend,
+        slam,
         folder,
-        loop_closing=closing,
         max_frames=args.max_frames,
         progress=not args.no_progress,
         tolerance=args.tolerance,
-        config=describe(components, closing, args),
+        config=describe(components, slam.closing, args),
         viewer=viewer,
         checkpointer=checkpointer,
         resume=resume,
     )
-    print(f"run {frontend.name} on {display_path(dataset.root)} ({dataset.format_name})")
+    print(f"run {slam.frontend.name} on {display_path(dataset.root)} ({dataset.format_name})")
     print_figures(figures)
     print(f"wrote {', '.join(display_path(args.out / f) for f in OUTPUT_FILES)}")
     write_json(args.json, figures)

@@ -401,8 +401,7 @@ def lcd_job(spec: JobSpec) -> JobResult:
 
 def pipeline_job(spec: JobSpec) -> JobResult:
     from eval.components import Components
-    from eval.run import LOOPS_FILE, build_loop_closing, run_odometry
-    from frontends.base import FRONTENDS
+    from eval.run import LOOPS_FILE, build_slam, run_odometry
 
     data = spec["dataset"]
     dataset = open_spec_dataset(data)
@@ -412,12 +411,9 @@ def pipeline_job(spec: JobSpec) -> JobResult:
         object_detector=data["object_detector"],
         overrides={"object_detector": list(data["object_overrides"])},
     )
-    frontend = FRONTENDS.load(components.frontend)(dataset.camera, components.of("frontend"))
-    closing = build_loop_closing(dataset, components)
+    slam = build_slam(dataset, components)
     out = Path(spec["out"])
-    figures = run_odometry(
-        dataset, frontend, out, loop_closing=closing, progress=False, tolerance=data["tolerance"]
-    )
+    figures = run_odometry(dataset, slam, out, progress=False, tolerance=data["tolerance"])
     pairs, _ = dataset.loop_pairs()
     references = gt_references(pairs) if pairs is not None else {}
     first_true: dict[str, Any] | None = None

@@ -58,6 +58,7 @@ class OrbConfig:
     overdetect: float = 3.0
     #: Grid for spreading features over the image (cells across and down); 0 disables it.
     grid_cols: int = 0
+    #: Grid cells down (0 disables the grid).
     grid_rows: int = 0
     #: Border (px) without features; also the descriptor patch size (31 = ORB's).
     edge_threshold: int = 31
@@ -154,8 +155,8 @@ def detect_orb(gray: np.ndarray, config: OrbConfig = OrbConfig()) -> OrbFeatures
     # (displacing them cost tracking on KITTI; docs/2026-12-06-adaptive-orb.md).
     keep = _choose(xy[:first], response[:first], image.shape, budget, config, spread)
     if len(keep) < budget and len(keypoints) > first:
-        more = _choose(xy[first:], response[first:], image.shape, budget - len(keep), config, spread)
-        keep = np.sort(np.concatenate([keep, first + more]))
+        extra = _choose(xy[first:], response[first:], image.shape, budget - len(keep), config, spread)
+        keep = np.sort(np.concatenate([keep, first + extra]))
     chosen = [keypoints[i] for i in keep]
     return OrbFeatures(
         keypoints=(xy[keep] / factor).astype(np.float32),

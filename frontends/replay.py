@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 class ReplayConfig:
     #: The trajectory file (camera-to-world poses); relative paths are relative to the working folder.
     trajectory: str = ""
+    #: Trajectory file format: tum (timestamped) or kitti (one pose per frame).
     format: Literal["tum", "kitti"] = "tum"
     #: TUM files: the largest |frame time - pose time| (s) that still matches.
     max_time_difference: float = 0.02
@@ -56,6 +57,7 @@ class ReplayConfig:
     keyframe_angle_deg: float | None = None
     #: A frame with fewer ORB features does not become a keyframe (the loop detectors' own floor).
     min_features: int = 20
+    #: ORB extraction of the keyframes (place-recognition preset).
     orb: OrbConfig = field(default_factory=OrbConfig)
 
     def __post_init__(self) -> None:

@@ -114,7 +114,9 @@ class LoopClosingConfig:
     #: Sigmas of the step that links a new map segment to the previous keyframe: rotation (rad),
     #: translation (map units) and log-scale. Loose enough that any loop overrides it.
     segment_link_rotation_sigma: float = 1.0
+    #: Translation sigma (map units) of the segment link.
     segment_link_translation_sigma: float = 100.0
+    #: Log-scale sigma of the segment link.
     segment_link_log_scale_sigma: float = 1.0
     #: Seconds of each segment's keyframes (the old one's last, the new one's first, as far as
     #: received) whose median speed sets the link's scale and length; 0 links by identity instead.
@@ -129,7 +131,9 @@ class LoopClosingConfig:
     #: Odometry sigmas for keyframes that come without a covariance (e.g. the replay frontend):
     #: rotation (rad), translation (fraction of the step length) and log-scale.
     default_rotation_sigma: float = 0.005
+    #: Default odometry translation sigma (fraction of the step length).
     default_translation_sigma: float = 0.02
+    #: Default odometry log-scale sigma.
     default_log_scale_sigma: float = 0.01
     #: Added to every odometry covariance (as variances): rotation (rad), translation (fraction of
     #: the keyframe's median map-point depth, the map's natural unit) and log-scale. A frontend's
@@ -137,7 +141,9 @@ class LoopClosingConfig:
     #: scale shrinks), which makes the information matrix ill-conditioned and iSAM2's
     #: factorisation fail; the floors keep every step a few orders of magnitude from singular.
     floor_rotation_sigma: float = 1e-4
+    #: Translation floor (fraction of the keyframe's median map-point depth).
     floor_translation_sigma: float = 1e-3
+    #: Log-scale floor.
     floor_log_scale_sigma: float = 1e-3
     #: Wall-clock budget of one verification (s; a verification costs ~40 ms). The verifier runs on
     #: a worker thread; past the budget the candidate is rejected with reason "timeout ..." and the
@@ -156,6 +162,7 @@ class LoopClosingConfig:
     #: else can refute a loop: one verified false loop there was accepted and moved a whole segment
     #: (fault injection, demo scene: ATE 0.225 -> 0.561 m). 1: the first such loop goes in at once.
     bridge_support: int = 2
+    #: Confidence of the chi2 test between loops that bridge two segments.
     bridge_confidence: float = 0.999
     #: A candidate whose images agree but whose map is too thin there for a constraint
     #: (``Verification.thin_map``) is deferred and re-verified after each of the next

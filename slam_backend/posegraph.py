@@ -66,6 +66,7 @@ _SAVE_FORMAT = "symbio-posegraph"
 class BackendConfig:
     #: Pose group: sim3 (monocular), se3 (metric 3D), se2 (planar).
     mode: Mode = "sim3"
+    #: Loop outlier rejection: none, huber, gnc, pcm or pcm+gnc.
     rejection: Rejection = "pcm+gnc"
     #: Chi-square confidence of the PCM pairwise test.
     pcm_confidence: float = 0.999
@@ -81,7 +82,9 @@ class BackendConfig:
     huber_threshold: float = 1.345
     #: Standard deviation of the prior that anchors the first keyframe.
     prior_sigma: float = 1e-6
+    #: iSAM2 relinearisation threshold (change of a variable, tangent space).
     isam_relinearize_threshold: float = 0.05
+    #: iSAM2 checks for relinearisation every this many updates.
     isam_relinearize_skip: int = 10
     #: iSAM2 update() calls per loop event (a large correction needs more than one).
     loop_update_iterations: int = 2

@@ -41,13 +41,17 @@ class TwoViewJoinConfig:
     #: Share of each side's depth ratios (map point / unit-baseline triangulation) that must lie
     #: within ``max_ratio_error`` of their median: the map agrees with the two views up to scale.
     min_consistent_ratio: float = 0.8
+    #: Largest relative deviation of a depth ratio from their median.
     max_ratio_error: float = 0.25
     #: Standard deviations of the constraint: rotation (rad; consistent joins of one segment pair
     #: differ by ~1 deg), translation (fraction of its length) with a floor (fraction of the match's
     #: median point depth), and the floor of the log-scale's (its own from the ratios' spread).
     rotation_sigma: float = 0.02
+    #: Translation sigma (fraction of the translation's length).
     translation_sigma: float = 0.25
+    #: Floor of the translation sigma (fraction of the match's median point depth).
     min_translation_sigma: float = 0.05
+    #: Floor of the log-scale sigma.
     min_log_scale_sigma: float = 0.05
 
     def __post_init__(self) -> None:

@@ -94,8 +94,11 @@ class VerifierConfig:
     max_hamming: int = 80
     #: Epipolar RANSAC threshold in pixels.
     max_epipolar_error_px: float = 4.0
+    #: Descriptor matches needed to attempt the epipolar geometry.
     min_matches: int = 30
+    #: Epipolar RANSAC inliers needed.
     min_inliers: int = 30
+    #: Share of the matches that must be epipolar inliers.
     min_inlier_ratio: float = 0.25
     #: Epipolar inliers with a map point in both keyframes needed for the Sim(3) (and Sim(3)
     #: inliers needed to accept it). 20 let two false loops through on a collapsed map (synthetic
@@ -108,6 +111,7 @@ class VerifierConfig:
     #: out-and-back 13, 30 of 45 points, 0.67). With 0.8, 42 pipeline scenes (seeds 0-13): 0 false
     #: of 963 accepted, 35 at the ATE target (36 with 0.5, figure8 7 0.44 -> 0.72).
     max_point_error: float = 0.03
+    #: Share of the points with a 3D point in both keyframes that must fit the Sim(3).
     min_point_inlier_ratio: float = 0.8
     #: PnP RANSAC threshold in pixels.
     max_reprojection_error_px: float = 4.0
@@ -116,7 +120,9 @@ class VerifierConfig:
     min_rotation_sigma_rad: float = 0.003
     #: As a fraction of the match's median point depth.
     min_translation_sigma: float = 0.01
+    #: Floor of the log-scale's standard deviation.
     min_log_scale_sigma: float = 0.02
+    #: Seed of pycolmap's RANSAC.
     seed: int = 0
 
     def __post_init__(self) -> None:

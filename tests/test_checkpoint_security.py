@@ -34,9 +34,10 @@ import pytest
 from eval import checkpoint
 from eval.checkpoint import HEADER_FILE, KEY_ENV, CheckpointError, FrameImages, check_dataset, read_header
 from eval.cli import main as symbio_main
-from eval.run import KEYFRAMES_FILE, LOOPS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, PipelineRun
+from eval.run import KEYFRAMES_FILE, LOOPS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE
 from frontends.datasets import open_dataset
 from frontends.errors import ModelError
+from slam_backend.slam import SlamState
 
 COMPARED = (TRAJECTORY_FILE, ODOMETRY_FILE, KEYFRAMES_FILE, LOOPS_FILE)
 FRAMES = 40
@@ -249,7 +250,7 @@ def _reduced(function: Any, *args: Any) -> bytes:
         (lambda marker: _reduced(eval, f"open({str(marker)!r}, 'w')"), "builtins.eval"),
         (lambda marker: _reduced(subprocess.Popen, ["touch", str(marker)]), "subprocess.Popen"),
         (
-            lambda marker: b"cbuiltins\ngetattr\n(ceval.run\nPipelineRun\nS'__init__'\ntR.",
+            lambda marker: b"cbuiltins\ngetattr\n(cslam_backend.slam\nSlamState\nS'__init__'\ntR.",
             "getattr(builtins.type, '__init__')",
         ),
         # What the project's modules imported, and project functions that are no reconstructors.
@@ -259,7 +260,7 @@ def _reduced(function: Any, *args: Any) -> bytes:
         ),
         (lambda marker: b"ceval.checkpoint\nos\n.", "eval.checkpoint.os"),
         (lambda marker: _reduced(checkpoint.discard, marker.parent), "eval.checkpoint.discard"),
-        (lambda marker: _reduced(getattr, PipelineRun(), "add"), "getattr(eval.run.PipelineRun, 'add')"),
+        (lambda marker: _reduced(getattr, SlamState(), "add"), "getattr(slam_backend.slam.SlamState, 'add')"),
     ],
 )
 def test_the_unpickler_admits_only_what_a_run_state_is_made_of(
@@ -277,7 +278,7 @@ def test_the_unpickler_admits_only_what_a_run_state_is_made_of(
 def test_a_state_that_does_not_pickle_is_one_clear_error(data: Path, tmp_path: Path) -> None:
     """ssd-mobilenet keeps an OpenCV network, which has no pickle support: no traceback."""
     saver = checkpoint.Checkpointer(tmp_path, 1, {}, open_dataset(data / "loop"))
-    state = checkpoint.RunState(cv2.dnn.Net(), None, PipelineRun(), 0, [])  # type: ignore[arg-type]
+    state = checkpoint.RunState(cv2.dnn.Net(), None, SlamState(), 0, [])  # type: ignore[arg-type]
     with pytest.raises(
         CheckpointError, match=r"cannot pickle 'cv2.dnn.Net' object.*--checkpoint-every"
     ) as caught:

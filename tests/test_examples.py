@@ -112,6 +112,7 @@ def examples(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Exa
         ),
         "evo": Example("evaluate_trajectory_evo.py"),
         "evo_files": Example("evaluate_trajectory_evo.py", str(gt_file), str(estimate_file)),
+        "slam": Example("slam_in_python.py", "--out", str(folder / "slam_out")),
     }
     yield runs
     for run in runs.values():
@@ -124,6 +125,7 @@ def test_every_example_is_tested_and_listed() -> None:
         "custom_loop_detector_plugin.py",
         "evaluate_trajectory_evo.py",
         "sim3_pose_graph_loop.py",
+        "slam_in_python.py",
         "symbiolcd2_two_images.py",
     }
     assert set(scripts) == tested, "a new example needs a test here"
@@ -175,6 +177,22 @@ def test_symbiolcd2_two_image_files(examples: dict[str, Example]) -> None:
     assert len(tiers) == 2
     for sizes in tiers:  # no object detector: features only, on the scene node
         assert sizes["object"] == 0 and sizes["tier0"] > 100
+
+
+def test_slam_in_python_with_own_detector(examples: dict[str, Example]) -> None:
+    out = examples["slam"].output()
+    assert "detector: my-symbiolcd2" in out  # the object passed in, not a registered one
+    frames = number(r"^frames tracked: (\d+) of 600", out)
+    assert frames >= 590
+    assert number(r"^loops accepted: (\d+) of", out) >= 5
+    assert number(r"^corrected poses: (\d+)", out) == frames
+    written = re.search(r"^wrote (.*)$", out, re.MULTILINE)
+    assert written, out
+    paths = [Path(p) for p in written.group(1).split(", ")]
+    assert [p.name for p in paths] == [
+        "trajectory_tum.txt", "trajectory_odometry_tum.txt", "keyframes_tum.txt", "loops.csv", "figures.json",
+    ]  # fmt: skip
+    assert all(p.is_file() for p in paths)
 
 
 def test_custom_loop_detector_plugin(examples: dict[str, Example]) -> None:

@@ -402,7 +402,7 @@ def test_symbio_run_refuses_an_alias_bomb(tmp_path: Path, capsys: pytest.Capture
 
 
 def _run_set(item: str) -> object:
-    """``symbio run --set loop_closing.KEY=VALUE`` as ``build_loop_closing`` applies it."""
+    """``symbio run --set loop_closing.KEY=VALUE`` as ``eval.run.build_slam`` applies it."""
     return load_config(LoopClosingConfig, None, load_components(None, [item], {}).of("loop_closing"))
 
 

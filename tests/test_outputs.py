@@ -254,9 +254,9 @@ def test_disk_full_while_writing_outputs_is_one_clear_error_and_keeps_the_checkp
 def test_an_interrupted_run_says_it_is_not_complete(
     small_loop_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import eval.run
+    from slam_backend.slam import Slam
 
-    original = eval.run.track_frame
+    original = Slam._track
     calls = {"n": 0}
 
     def interrupt_at_20(*args: Any) -> Any:
@@ -266,7 +266,7 @@ def test_an_interrupted_run_says_it_is_not_complete(
             time.sleep(1)  # the signal handler raises here
         return original(*args)
 
-    monkeypatch.setattr(eval.run, "track_frame", interrupt_at_20)
+    monkeypatch.setattr(Slam, "_track", interrupt_at_20)
     out = tmp_path / "run"
     assert replay(small_loop_scene, out) == 130
     figures = metrics(out)

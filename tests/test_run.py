@@ -20,6 +20,7 @@ from frontends.datasets import open_dataset
 from frontends.replay import create as create_replay
 from frontends.trajectory_io import read_tum, write_trajectory
 from frontends.types import Frame, Keyframe
+from slam_backend import Slam
 
 
 def run_replay(dataset: Path, trajectory: Path, out: Path, *extra: str) -> dict[str, Any]:
@@ -55,6 +56,7 @@ def test_replaying_the_ground_truth_gives_zero_ate(small_loop_scene: Path, tmp_p
     np.testing.assert_allclose(np.diff(keyframes.timestamps), 0.2, atol=0.002)
 
 
+@pytest.mark.slow
 def test_ate_is_measured_after_sim3_alignment(small_loop_scene: Path, tmp_path: Path) -> None:
     gt = read_tum(small_loop_scene / "groundtruth.txt")
     moved = PoseTrajectory3D(poses_se3=gt.poses_se3, timestamps=gt.timestamps)
@@ -71,6 +73,7 @@ def test_ate_is_measured_after_sim3_alignment(small_loop_scene: Path, tmp_path: 
     assert metrics["ate_rmse_before"] < 1e-6
 
 
+@pytest.mark.slow
 def test_frames_without_a_pose_are_lost_not_interpolated(
     small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -91,6 +94,7 @@ def test_frames_without_a_pose_are_lost_not_interpolated(
     assert not ((keyframes >= stamps[100]) & (keyframes <= stamps[149])).any()
 
 
+@pytest.mark.slow
 def test_keyframes_by_distance(small_loop_scene: Path, tmp_path: Path) -> None:
     gt_file = small_loop_scene / "groundtruth.txt"
     out = tmp_path / "out"
@@ -156,13 +160,16 @@ class FailingFrontend:
         return self.inner.keyframes()
 
 
+@pytest.mark.slow
 def test_a_frontend_that_raises_loses_only_those_frames(
     small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     failing = {7, 8, 300, 599}
     dataset = open_dataset(small_loop_scene)
     frontend = FailingFrontend(small_loop_scene, failing, RuntimeError)
-    metrics = run_odometry(dataset, frontend, tmp_path, progress=False)
+    metrics = run_odometry(
+        dataset, Slam(dataset.camera, frontend=frontend, loop_detector=None), tmp_path, progress=False
+    )
     assert metrics["frames"] == 600 and metrics["frames_tracked"] == 596
     assert metrics["tracking_lost"] == metrics["frontend_failures"] == 4
     assert metrics["ate_rmse_before"] < 1e-6
@@ -174,7 +181,9 @@ def test_an_interrupted_run_writes_what_it_has(small_loop_scene: Path, tmp_path:
     dataset = open_dataset(small_loop_scene)
     frontend = FailingFrontend(small_loop_scene, {40}, KeyboardInterrupt)
     with pytest.raises(KeyboardInterrupt):
-        run_odometry(dataset, frontend, tmp_path, progress=False)
+        run_odometry(
+            dataset, Slam(dataset.camera, frontend=frontend, loop_detector=None), tmp_path, progress=False
+        )
     metrics = json.loads((tmp_path / METRICS_FILE).read_text())
     assert metrics["interrupted"] is True
     assert metrics["frames"] == metrics["frames_tracked"] == 40

@@ -25,10 +25,12 @@ class InitSettings:
     min_matches: int = 100
     #: Lowe ratio and the largest image displacement (fraction of the diagonal) of an init match.
     ratio: float = 0.8
+    #: Largest image displacement of an init match (fraction of the image diagonal).
     max_flow_fraction: float = 0.25
     #: RANSAC thresholds (px) of the essential matrix (Sampson) and the homography (transfer); in
     #: the ratio of ORB-SLAM's chi2 cut-offs (5.99 vs 3.84), so that inlier counts are comparable.
     essential_threshold: float = 1.0
+    #: Homography RANSAC threshold (px, transfer error).
     homography_threshold: float = 1.25
     #: Homography is the model when its share of the inliers H / (H + E) exceeds this (ORB-SLAM 0.45).
     homography_share: float = 0.45
@@ -50,6 +52,7 @@ class InitSettings:
     #: (after 3-4 frames at 1.2 deg/frame, two frames in a row agreeing on the wrong one), which
     #: distorted the first map; with three agreeing frames every synthetic start is within 13 deg.
     max_direction_change_deg: float = 10.0
+    #: Consecutive attempts whose directions of motion must agree (see above).
     stable_frames: int = 3
     #: ... or this many after a reference ran out of matches (``min_matches``) before
     #: ``stable_frames`` attempts: at that speed no reference lives long enough for more, and the
@@ -66,21 +69,26 @@ class InitSettings:
 class TrackingSettings:
     #: Search radius (px) around the constant-velocity prediction, and after the PnP pose.
     search_radius: float = 15.0
+    #: Search radius (px) around the PnP pose, for the second round of matches.
     refine_radius: float = 5.0
     #: Hamming distance of an accepted projection match, and Lowe's ratio between the best two.
     max_hamming: int = 80
+    #: Lowe's ratio between the best two projection matches.
     ratio: float = 0.9
     #: A point is searched for only when the camera sees it within this angle of its mean viewing
     #: direction (ORB-SLAM: 60 deg) and within ``distance_margin`` of its scale-invariance range
     #: (ORB-SLAM: 0.8x the nearest, 1.2x the farthest distance).
     max_view_angle_deg: float = 60.0
+    #: Margin on a point's scale-invariance distance range (ORB-SLAM: 0.8x and 1.2x).
     distance_margin: float = 1.2
     #: Orientation histogram of the matches (ORB-SLAM: 30 bins; the second and third most popular
     #: bins count with 10 % of the first's matches).
     rotation_bins: int = 30
+    #: Share of the top bin's matches the second and third bins need to count (ORB-SLAM 0.1).
     rotation_min_share: float = 0.1
     #: PnP RANSAC reprojection threshold (px) and the inlier threshold of the refinement.
     pnp_threshold: float = 3.0
+    #: Reprojection error (px) of an inlier of the pose refinement.
     inlier_threshold: float = 2.45
     #: Inliers needed to call a frame tracked (640x480 reference, scaled with the feature budget).
     min_inliers: int = 40
@@ -107,9 +115,11 @@ class KeyframeSettings:
     #: established points (seen by >= 3 keyframes; ORB-SLAM's rule) or ``min_tracked_share`` of all
     #: its points ...
     tracked_ratio: float = 0.9
+    #: ... or fewer than this share of all its tracked points.
     min_tracked_share: float = 0.5
     #: ... or this much time passed since the last keyframe (s), and never sooner than min_interval.
     max_interval: float = 0.5
+    #: Seconds since the last keyframe before another may be made.
     min_interval: float = 0.0
     #: ... or, at least ``narrow_min_interval`` s after the last keyframe, the tracked points span
     #: less than this share of the image width or height. A walking person or a turn into unmapped
@@ -118,6 +128,7 @@ class KeyframeSettings:
     #: unless a keyframe mapped the rest of the view. (Without the interval, keyframes a frame apart
     #: give local BA no baseline.)
     min_tracked_spread: float = 0.45
+    #: Seconds since the last keyframe before a narrow spread makes one.
     narrow_min_interval: float = 0.1
     #: Earlier keyframes the new keyframe triangulates fresh points with, among the last
     #: ``triangulation_window`` that see the same scene (``partner_min_shared`` of its tracked map
@@ -132,13 +143,18 @@ class KeyframeSettings:
     #: short; 2 %: 58 %, 4 % short; 3.5 %: all, unbiased.
     #: Every keyframe that triangulates so shrinks the map a little more: during a walking person's
     #: pass, keyframes a frame apart shrank synthetic loop 2's map 20x. Measured over 84 masked runs
-    #: (README, "Triangulation baseline"): collapses 6 -> 2, restarts 3 -> 6 (loop closing links those).
-    #: ``preferred_baseline_ratio`` 0.03 with ``partner_min_shared`` 0.2 is measured in the README
-    #: (under 0.01): it ended out-and-back 1's 8x collapse but made figure8 3's start shrink.
+    #: (docs/slam-runs.md, "Triangulation baseline"): collapses 6 -> 2, restarts 3 -> 6 (loop closing
+    #: links those). ``preferred_baseline_ratio`` 0.03 with ``partner_min_shared`` 0.2 is measured in
+    #: docs/slam-runs.md ("Triangulation partners", under 0.01): it ended out-and-back 1's 8x collapse but
+    #: made figure8 3's start shrink.
     triangulation_neighbours: int = 2
+    #: Recent keyframes searched for triangulation partners.
     triangulation_window: int = 8
+    #: Smallest baseline of a triangulation partner (fraction of the median depth).
     min_baseline_ratio: float = 0.035
+    #: Baseline (fraction of the median depth) of the partners tried first.
     preferred_baseline_ratio: float = 0.035
+    #: Share of the keyframe's tracked map points a partner must see (0: any).
     partner_min_shared: float = 0.0
     #: Search radius (fraction of the image diagonal) around the median-depth prediction of a match.
     search_fraction: float = 0.05
@@ -147,10 +163,11 @@ class KeyframeSettings:
     #: without a map point. Points are then seen by more keyframes and more survive culling, and
     #: nearly all of a keyframe's points count as established, so pair it with ``tracked_ratio`` 0.7
     #: (at 0.9 almost every frame becomes a keyframe: synthetic loop 0, 173 of 300). Measured with 8
-    #: and 0.7 (README, "Search in neighbours"): KITTI clip 0.142 -> 0.094 % of the path; on the 21
+    #: and 0.7 (docs/slam-runs.md, "Search in neighbours"): KITTI clip 0.142 -> 0.094 % of the path; on the 21
     #: synthetic scenes of seeds 0-6 the runs that keep their map are 28-35 % more accurate, but 10
     #: of 42 masked runs (frontend seed 0 and 1) collapse against 7, so it is opt-in.
     search_neighbours: int = 0
+    #: Radius (px) of the search in neighbouring keyframes and of duplicate fusion.
     search_radius: float = 3.0
     #: Duplicates: a local-map point that projects within ``search_radius`` px of a new keyframe's
     #: keypoint already holding another point, reprojects within the inlier threshold there and
@@ -158,16 +175,18 @@ class KeyframeSettings:
     #: (tracking missed it, so the keyframe triangulated it again); the two are merged (ORB-SLAM's
     #: Fuse, TH_LOW 50). 0: never merge. Without it a quarter of the points a frame could match
     #: were copies (synthetic loop 6, frame 293: 106 of 376 unmatched points in view had their
-    #: keypoint taken by a twin). Measured (README, "Fusing duplicate points"): KITTI clip, frontend
-    #: seeds 0-5, median ATE 0.173 -> 0.071 % of the path (better in 5 of 6); 84 masked synthetic
+    #: keypoint taken by a twin). Measured (docs/slam-runs.md, "Fusing duplicate points"): KITTI clip,
+    #: frontend seeds 0-5, median ATE 0.173 -> 0.071 % of the path (better in 5 of 6); 84 masked synthetic
     #: runs (scene seeds 0-13) with a restart or collapse 19 -> 16, but the steady runs' geometric-
     #: mean ATE 8-16 % worse.
     fuse_max_hamming: int = 50
     #: Lowe ratio and Hamming limit of the keyframe-to-keyframe matches for triangulation.
     match_ratio: float = 0.8
+    #: Hamming limit of a keyframe-to-keyframe triangulation match.
     match_max_hamming: int = 60
     #: Epipolar distance (px) of a triangulation match and the minimum parallax (deg) of its point.
     epipolar_threshold: float = 2.0
+    #: Minimum parallax (deg) of a triangulated point.
     min_parallax_deg: float = 1.0
     #: Odometry covariance between consecutive keyframes (1-sigma) that share at least
     #: ``covariance_reference_points`` map points; the translation sigma is relative to the distance
@@ -179,10 +198,15 @@ class KeyframeSettings:
     #: shared^-1.4 and shared^-2.9). Sigmas that ignored this made PCM reject the correct loops that
     #: span a thin stretch of map (figure8 seed 2: 14 of 32, to keyframes whose scale was 1.8x off).
     rotation_sigma_deg: float = 0.1
+    #: Odometry translation sigma (fraction of the step length).
     translation_sigma_ratio: float = 0.02
+    #: Odometry log-scale sigma.
     log_scale_sigma: float = 0.005
+    #: Shared map points at and above which the sigmas are not inflated.
     covariance_reference_points: int = 400
+    #: Sigmas grow as (reference / shared points) ** this.
     covariance_exponent: float = 2.0
+    #: Largest factor the sigmas are inflated by.
     max_covariance_inflation: float = 100.0
 
     def __post_init__(self) -> None:
@@ -204,11 +228,13 @@ class KeyframeSettings:
 
 @dataclass(frozen=True)
 class BundleAdjustmentSettings:
+    #: Run local bundle adjustment after each keyframe.
     enabled: bool = True
     #: Keyframes optimised after each new keyframe (older ones that see the same points stay fixed).
     window: int = 6
     #: Fixed keyframes (outside the window) that anchor the window, most recent first.
     max_fixed: int = 4
+    #: Levenberg-Marquardt iterations at most.
     iterations: int = 6
     #: LM stops once an iteration lowers the error by less than this share: the local BA converges
     #: in 2-4 iterations, and the last ones moved the error by < 0.1 % (measured) at ~20 ms each.
@@ -221,7 +247,7 @@ class BundleAdjustmentSettings:
     #: rotation and sideways translation move the image almost alike and, with the orientation
     #: free, each keyframe pulled the first pair further along that valley (figure8 seed 8: yaw
     #: under-estimated by 10, 20, 25 % per keyframe, the map shrinking 25x in 100 frames). Measured
-    #: with the single-anchor range factor (``local_ba``; README, "The segment start's
+    #: with the single-anchor range factor (``local_ba``; docs/slam-runs.md, "The segment start's
     #: orientation"), against False: first 200 frames of the 14 figure8 scenes x 2 frontend seeds,
     #: collapses 8 -> 1; 600-frame masked runs that restart or collapse 4 -> 2 of 42 (seeds 0-6) and
     #: 13 -> 7 of 42 (held-out 7-13); first 150 frames of the 320x240 loop x 10 frontend seeds,
@@ -234,9 +260,11 @@ class BundleAdjustmentSettings:
 class RelocalisationSettings:
     #: Recent keyframes tried as anchors for a lost frame.
     max_keyframes: int = 12
+    #: Lowe ratio of the matches between a lost frame and an anchor keyframe.
     ratio: float = 0.8
     #: PnP RANSAC inliers against one keyframe, and inliers after the local-map check (640x480 ref.).
     min_pnp_inliers: int = 20
+    #: Inliers after the local-map check (640x480 reference).
     min_inliers: int = 50
     #: Frames with features that may fail to relocalise before a new map segment starts.
     patience: int = 10
@@ -295,6 +323,7 @@ class MaskingSettings:
     #: Lowe ratio and Hamming limit of the unguided keyframe-to-partner matches (ORB-SLAM's
     #: initialiser: 0.9 and TH_LOW 50; this frontend's triangulation: 0.8 and 60).
     match_ratio: float = 0.8
+    #: Hamming limit of the keyframe-to-partner matches.
     max_hamming: int = 60
     #: Largest image displacement of a match (fraction of the image diagonal; init's 0.25).
     max_flow_fraction: float = 0.25
@@ -309,7 +338,9 @@ class MaskingSettings:
     #: test at ``significance``) at a rate of ``moving_ratio`` times the background's share (false
     #: matches, pose error), or ``min_violation_rate`` if higher; else it is static.
     moving_ratio: float = 2.0
+    #: Smallest violation rate that makes a box moving.
     min_violation_rate: float = 0.1
+    #: Significance level of the one-sided binomial test.
     significance: float = 0.01
     #: No verdict at all when more than this share of the background's matches violate the motion
     #: (KITTI clip: at most 0.16; a wrong pose, or boxes that leave only a strip just uncovered).
@@ -319,6 +350,7 @@ class MaskingSettings:
     #: camera fits the epipolar geometry (at a wrong depth), and a walking person does not stop
     #: between two keyframes.
     follow_iou: float = 0.3
+    #: Seconds a box judged moving makes overlapping boxes moving.
     follow_seconds: float = 1.0
     #: A box is static only if the median depth of its consistent matches is at most this many
     #: times that of the consistent matches around it (outside every box, within ``ring_fraction``
@@ -326,7 +358,9 @@ class MaskingSettings:
     #: fits the epipolar geometry at a wrong depth and, moving with the camera, lands behind what
     #: it hides (synthetic figure8 1: 2.2x and 1.6x; KITTI clip's parked cars: 0.1-1.1x).
     max_depth_ratio: float = 1.3
+    #: Width of the ring around a box (fraction of its size) its depth is compared with.
     ring_fraction: float = 0.5
+    #: Consistent matches the ring needs for the depth check.
     min_ring_matches: int = 5
     #: Keypoints outside the boxes matched to measure the background's share (seeded sample).
     background_sample: int = 300
@@ -354,15 +388,22 @@ class MaskingSettings:
 
 @dataclass(frozen=True)
 class MonoVoConfig:
+    #: Seed of every RANSAC (initialisation, PnP, relocalisation), mixed with the frame index.
     seed: int = 0
     #: Frames with fewer features than this (640x480 reference) are "lost" without further work.
     min_features: int = 100
     #: ORB extraction (``frontends.orb``; the tracking preset: dense, spread, two thresholds per cell).
     orb: OrbConfig = field(default_factory=lambda: TRACKING_ORB)
+    #: Two-view initialisation of a map (``InitSettings``).
     init: InitSettings = field(default_factory=InitSettings)
+    #: Tracking each frame against the local map (``TrackingSettings``).
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
+    #: Keyframe selection, triangulation and odometry covariance (``KeyframeSettings``).
     keyframes: KeyframeSettings = field(default_factory=KeyframeSettings)
+    #: Local bundle adjustment after each keyframe (``BundleAdjustmentSettings``).
     ba: BundleAdjustmentSettings = field(default_factory=BundleAdjustmentSettings)
+    #: Recovering a lost frame, and backfilling frames before the map (``RelocalisationSettings``).
     relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
+    #: Warnings that the camera intrinsics look wrong (``IntrinsicsCheckSettings``).
     intrinsics_check: IntrinsicsCheckSettings = field(default_factory=IntrinsicsCheckSettings)
     masking: MaskingSettings = field(default_factory=MaskingSettings)
