@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test test-shared test-all lint format bench clean
+.PHONY: demo test test-slow test-shared test-all lint format bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,12 +18,18 @@ $(VENV)/.installed-dev: $(VENV)/.installed pyproject.toml
 demo: $(VENV)/.installed
 	$(VENV)/bin/symbio demo --out demo_out
 
-# The self-contained suite: tests that need ../shared are left to `make test-shared`.
+# The self-contained suite (a few minutes): tests that need ../shared are left to `make test-shared`,
+# pipeline-scale tests marked `slow` to `make test-slow`.
 test: $(VENV)/.installed-dev
 	$(PY) -m pytest -q -m "not shared"
 
+# The self-contained tests marked slow (whole pipeline runs, long scenes); CI runs them after `make test`.
+test-slow: $(VENV)/.installed-dev
+	$(PY) -m pytest -q -m "slow and not shared" --runslow
+
+# Every test that needs ../shared, slow ones included (CI runs it when the data is there).
 test-shared: $(VENV)/.installed-dev
-	$(PY) -m pytest -q -m shared
+	$(PY) -m pytest -q -m shared --runslow
 
 test-all: $(VENV)/.installed-dev
 	$(PY) -m pytest -q --runslow
@@ -32,6 +38,7 @@ lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 format: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check --fix .

@@ -1,4 +1,5 @@
-"""Loop-detector accuracy across datasets: the comparison and ablation tables of the README.
+"""Loop-detector accuracy across datasets: the comparison and ablation tables of
+docs/loop-closure-detection.md ("Results").
 
 Every dataset is read once per table: each keyframe's ORB features and objects are computed once and
 fed to every detector (``eval.lcd_eval.run_lcd``), so the detectors see identical inputs.

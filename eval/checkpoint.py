@@ -7,8 +7,6 @@ generators these objects hold (every random draw in the project comes from a see
 derived per call, never from a global RNG). Nothing is listed field by field, so new fields of any
 component are saved too. What does not pickle, or should not be copied each time:
 
-* ``cv2.ORB`` (no pickle support in OpenCV) is rebuilt from its own parameters by
-  ``_StatePickler.reducer_override``;
 * ``slam_backend.posegraph.GtsamPoseGraph`` (gtsam objects) pickles as its config and the log of its
   state-changing calls and is rebuilt by replaying them, which reproduces iSAM2 bit for bit;
 * frame images (keyframes keep theirs) are stored as their frame index and read from the dataset
@@ -71,7 +69,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from frontends.base import Frontend
@@ -237,24 +234,6 @@ class RunState:
     skipped: list[SkippedFrame]
 
 
-def _orb_parameters(orb: Any) -> dict[str, Any]:
-    return {
-        "nfeatures": orb.getMaxFeatures(),
-        "scaleFactor": orb.getScaleFactor(),
-        "nlevels": orb.getNLevels(),
-        "edgeThreshold": orb.getEdgeThreshold(),
-        "firstLevel": orb.getFirstLevel(),
-        "WTA_K": orb.getWTA_K(),
-        "scoreType": orb.getScoreType(),
-        "patchSize": orb.getPatchSize(),
-        "fastThreshold": orb.getFastThreshold(),
-    }
-
-
-def _new_orb(parameters: dict[str, Any]) -> Any:
-    return cv2.ORB.create(**parameters)
-
-
 class FrameImages:
     """The images of the frames a run has read, by identity: a checkpoint stores a frame's index
     instead of its pixels (keyframes keep their images; at 640x480 that is 0.9 MB per keyframe),
@@ -303,7 +282,8 @@ def _frame_image(index: int) -> np.ndarray:
 
 
 class _StatePickler(pickle.Pickler):
-    """pickle, plus OpenCV's ORB (rebuilt from its parameters) and frame images (by index)."""
+    """pickle, plus frame images (by index). Nothing of OpenCV is part of the state: the ORB
+    extractor (``frontends.orb``) holds only its config."""
 
     def __init__(self, file: io.BytesIO, images: FrameImages) -> None:
         super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
@@ -313,8 +293,6 @@ class _StatePickler(pickle.Pickler):
         if isinstance(obj, np.ndarray):
             index = self.images.index_of(obj)
             return (_frame_image, (index,)) if index is not None else NotImplemented
-        if isinstance(obj, cv2.ORB):
-            return _new_orb, (_orb_parameters(obj),)
         return NotImplemented
 
 
@@ -324,7 +302,6 @@ PROJECT_PACKAGES = frozenset({"frontends", "lcd", "slam_backend", "eval"})
 PROJECT_FUNCTIONS = frozenset(
     {
         (__name__, _frame_image.__name__),
-        (__name__, _new_orb.__name__),
         ("lcd.vocabulary", "_reload"),
         ("slam_backend.posegraph", "_replayed"),
     }

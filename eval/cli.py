@@ -24,7 +24,7 @@ SUBCOMMANDS = {
     "posegraph": "slam_backend.cli",
     "vocab": "lcd.vocab_cli",
     "symbiolcd-train": "lcd.symbiolcd_train",
-    "eval": "eval.lcd_eval",
+    "eval": "eval.eval_cli",
     "detectors": "eval.lcd_eval",
     "run": "eval.run_cli",
     "config": "eval.config_cli",

@@ -1,8 +1,8 @@
 """Fault injection for ``symbio run --inject KIND[:RATE][,KIND[:RATE]...] [--inject-seed N]``.
 
 A debug option and the fixture of ``tests/test_faults.py``: it makes a run meet the bad inputs and
-failing plugins a long recording meets, and the run must handle each as documented (README, "What
-we test against"). ``RATE`` is the fraction of frames (frame faults) or of calls (plugin faults)
+failing plugins a long recording meets, and the run must handle each as documented
+(docs/what-we-test-against.md). ``RATE`` is the fraction of frames (frame faults) or of calls (plugin faults)
 hit, each chosen by a generator seeded with (``--inject-seed``, fault, frame or keyframe ids), so
 the same spec gives the same faults on the same frames. A frame gets at most one frame fault (the
 first listed that hits it).

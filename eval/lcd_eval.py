@@ -559,13 +559,7 @@ def comparison_table(results: dict[str, dict[str, Any]]) -> str:
 
 
 def add_parser(subparsers: Any) -> None:
-    evaluate = subparsers.add_parser("eval", help="evaluate loop detectors and SLAM runs")
-    commands = evaluate.add_subparsers(dest="eval_command", metavar="SUBCOMMAND", required=True)
-    add_lcd_parser(commands)
-    # eval.table builds on this module (run_lcd, figures_of), so it is imported when the parser is built.
-    from eval.table import add_table_parsers
-
-    add_table_parsers(commands)
+    """``symbio detectors`` (``symbio eval lcd`` is added by ``eval.eval_cli``)."""
     detectors = subparsers.add_parser("detectors", help="list the installed loop and object detectors")
     detectors.set_defaults(handler=list_detectors)
 

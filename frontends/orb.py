@@ -1,4 +1,5 @@
-"""ORB features for every stage: the frontend, the loop detectors, the vocabulary and the verifier.
+"""ORB features and their matching for every stage: the frontend, the loop detectors, the
+vocabulary and the verifier.
 
 One extractor adapts to the image (measured in ``docs/2026-12-06-adaptive-orb.md``):
 
@@ -189,6 +190,53 @@ def spread_over_grid(
     # Round r takes the r-th strongest corner of every cell; within a round the strongest go first.
     picked = order[np.lexsort((-response[order], rank))[:budget]]
     return np.sort(picked)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (K, 32) uint8 descriptor arrays."""
+    words_a = np.ascontiguousarray(a).view(np.uint64)
+    words_b = np.ascontiguousarray(b).view(np.uint64)
+    return np.bitwise_count(words_a ^ words_b).sum(axis=1, dtype=np.int64)
+
+
+def match_descriptors(
+    query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int, *, mutual: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force Hamming matches (OpenCV) passing Lowe's ratio test and ``max_hamming``:
+    (query index, train index) arrays, one query per train descriptor (the closest). ``mutual``:
+    only pairs that are also each other's nearest neighbour from the train side (the verifier's
+    check; the tracker's candidates are further filtered by geometry instead)."""
+    none = np.zeros(0, np.int64)
+    if len(query) < 2 or len(train) < 2:
+        return none, none
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    pairs = matcher.knnMatch(query, train, k=2)
+    rows = np.array(
+        [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in pairs if len(m) == 2],
+        dtype=np.float64,
+    ).reshape(-1, 4)
+    rows = rows[(rows[:, 2] <= max_hamming) & (rows[:, 2] < ratio * rows[:, 3])]
+    source, target = unique_targets(rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64), rows[:, 2])
+    if not mutual or len(target) == 0:
+        return source, target
+    # The backward match of only the train descriptors that passed: the same answer as a full
+    # second pass (each row is matched on its own) at a fraction of its cost.
+    best_back = np.full(len(train), -1, dtype=np.int64)
+    for m in matcher.match(train[target], query):
+        best_back[target[m.queryIdx]] = m.trainIdx
+    keep = np.flatnonzero(best_back[target] == source)
+    keep = keep[np.argsort(source[keep], kind="stable")]  # in query order
+    return source[keep], target[keep]
+
+
+def unique_targets(
+    source: np.ndarray, target: np.ndarray, distance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep one match per target: the one with the smallest distance."""
+    order = np.lexsort((distance, target))
+    sorted_target = target[order]
+    first = order[np.r_[True, sorted_target[1:] != sorted_target[:-1]]] if len(order) else order
+    return source[first], target[first]
 
 
 def _choose(

@@ -30,12 +30,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 import pycolmap
 
 from frontends.config import load_config
 from frontends.errors import ConfigError
+from frontends.orb import match_descriptors
 from frontends.types import CameraIntrinsics, Keyframe
 from slam_backend import plugins
 
@@ -134,28 +134,6 @@ class VerifierConfig:
             raise ConfigError("verifier: inlier ratios must be in [0, 1]")
 
 
-def match_descriptors(a: np.ndarray, b: np.ndarray, ratio: float, max_hamming: int) -> np.ndarray:
-    """(K, 2) index pairs of mutual nearest neighbours passing the ratio test."""
-    if len(a) < 2 or len(b) < 2:
-        return np.zeros((0, 2), dtype=np.int64)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    forward = [
-        (m.queryIdx, m.trainIdx)
-        for m, n in (p for p in matcher.knnMatch(a, b, k=2) if len(p) == 2)
-        if m.distance < ratio * n.distance and m.distance <= max_hamming
-    ]
-    if not forward:
-        return np.zeros((0, 2), dtype=np.int64)
-    # The mutual check needs the backward match of only the ``b`` descriptors that passed the ratio
-    # test: the same answer (each row is matched on its own) at a fraction of a full second pass.
-    targets = np.unique(np.array([j for _, j in forward], dtype=np.int64))
-    best_back = np.full(len(b), -1, dtype=np.int64)
-    for m in matcher.match(b[targets], a):
-        best_back[targets[m.queryIdx]] = m.trainIdx
-    pairs = [(i, j) for i, j in forward if best_back[j] == i]
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
-
-
 def colmap_camera(camera: CameraIntrinsics) -> pycolmap.Camera:
     if camera.is_distorted:
         d = camera.dist_coeffs
@@ -200,7 +178,10 @@ def verify_two_view(
 ) -> TwoViewVerification:
     """Does ``query`` see ``match``'s place by its image alone? The first two stages of
     ``PycolmapVerifier.verify`` (which calls this), also used by ``symbio eval lcd --verify``."""
-    pairs = match_descriptors(query.descriptors, match.descriptors, config.ratio, config.max_hamming)
+    matched = match_descriptors(
+        query.descriptors, match.descriptors, config.ratio, config.max_hamming, mutual=True
+    )
+    pairs = np.stack(matched, axis=1)
     if len(pairs) < config.min_matches:
         reason = f"{len(pairs)} descriptor matches < {config.min_matches}"
         return TwoViewVerification(False, reason, len(pairs), np.zeros((0, 2), dtype=np.int64))

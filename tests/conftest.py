@@ -2,6 +2,11 @@
 
 Tests that need the read-only shared data take the ``shared`` fixture and carry
 ``@pytest.mark.shared``; without the folder they skip, so ``make test`` passes on a user's machine.
+
+Pipeline-scale tests (whole runs on long scenes, benchmarks) carry ``@pytest.mark.slow`` and are
+skipped unless ``--runslow`` is given, so ``make test`` stays within a few minutes on 2 cores; each
+area keeps a small end-to-end test in the default run. ``make test-slow`` runs the self-contained slow
+tests and ``make test-shared`` passes ``--runslow`` too, so CI (``.ci/run``) runs every test.
 """
 
 from __future__ import annotations

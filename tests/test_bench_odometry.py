@@ -34,6 +34,7 @@ def test_comparison_separates_collapses_from_accuracy() -> None:
     assert c["steady_better"] == 1
 
 
+@pytest.mark.slow
 def test_cli_runs_compares_and_names_a_bad_setting(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

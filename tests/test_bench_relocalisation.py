@@ -43,6 +43,7 @@ def test_summary_judges_relocalisations_on_right_maps_only() -> None:
     assert summary["median_error_m"] == pytest.approx(0.21)
 
 
+@pytest.mark.slow
 def test_cli_reports_each_case_and_names_a_bad_setting(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

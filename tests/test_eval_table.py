@@ -102,6 +102,7 @@ def test_autorank_on_known_inputs() -> None:
     assert (effect(float("nan")), effect(-np.inf), effect(0.25)) == ("-", "-inf", "0.25")
 
 
+@pytest.mark.slow
 def test_table_structure_and_outputs(table_run: tuple[TableRun, Path]) -> None:
     _, out = table_run
     for name in (*TABLES, "report.html", "jobs.csv", "failures.csv", "pr_loop-3.png", "cd_recall.png"):
@@ -134,6 +135,7 @@ def test_table_structure_and_outputs(table_run: tuple[TableRun, Path]) -> None:
     assert "Table VI" in report and "<table>" in report
 
 
+@pytest.mark.slow
 def test_failing_jobs_are_isolated_and_listed(table_run: tuple[TableRun, Path]) -> None:
     run, out = table_run
     failed = run.outcome.failures
@@ -147,6 +149,7 @@ def test_failing_jobs_are_isolated_and_listed(table_run: tuple[TableRun, Path]) 
     assert ablation[2].strip() != "-"
 
 
+@pytest.mark.slow
 def test_resume_redoes_only_missing_jobs_and_gives_identical_tables(
     table_run: tuple[TableRun, Path], tmp_path: Path
 ) -> None:
@@ -165,6 +168,7 @@ def test_resume_redoes_only_missing_jobs_and_gives_identical_tables(
     assert {name: (out / name).read_text() for name in TABLES} == before
 
 
+@pytest.mark.slow
 def test_sweep_over_a_grid(table_run: tuple[TableRun, Path], tmp_path: Path) -> None:
     _, out = table_run
     sweep = tmp_path / "sweep.yaml"

@@ -179,6 +179,7 @@ def test_symbiolcd2_two_image_files(examples: dict[str, Example]) -> None:
         assert sizes["object"] == 0 and sizes["tier0"] > 100
 
 
+@pytest.mark.slow
 def test_slam_in_python_with_own_detector(examples: dict[str, Example]) -> None:
     out = examples["slam"].output()
     assert "detector: my-symbiolcd2" in out  # the object passed in, not a registered one

@@ -274,6 +274,7 @@ def posed_frames(scene: Path, out: Path) -> set[int]:
 STARVING = "black:0.03,no-features:0.03,overexposed:0.03,blur:0.03"
 
 
+@pytest.mark.slow
 def test_frames_without_usable_features_are_lost_never_posed(small_loop_scene: Path, tmp_path: Path) -> None:
     out, frames = tmp_path / "run", 400
     argv = ["--no-loops", "--max-frames", str(frames), "--inject", STARVING, "--inject-seed", "2"]
@@ -294,6 +295,7 @@ def test_frames_without_usable_features_are_lost_never_posed(small_loop_scene: P
 PLUGINS = "objects-raise:0.3,objects-empty:0.3,loops-raise:0.2,verifier-raise:0.3,verifier-timeout:0.5"
 
 
+@pytest.mark.slow
 def test_failing_plugins_cost_one_keyframe_or_candidate_each(small_loop_scene: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
     budget = "loop_closing.verify_timeout_s=0.2"
@@ -327,6 +329,7 @@ def clean_run(small_loop_scene: Path, tmp_path_factory: pytest.TempPathFactory) 
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_false_loops_are_rejected_and_the_map_stays_as_good(
     small_loop_scene: Path, tmp_path: Path, clean_run: dict[str, Any]
 ) -> None:
@@ -348,6 +351,7 @@ def test_false_loops_are_rejected_and_the_map_stays_as_good(
     np.testing.assert_allclose(final.positions_xyz, odometry.positions_xyz, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_verified_false_loops_are_rejected_by_the_backend() -> None:
     """Rendered keyframes with exact depth and simulated drift (``test_pipeline``), one map segment:
     every false pair passes "verification" with a confident identity constraint, as perceptual

@@ -126,6 +126,7 @@ def test_the_loop_correspondences_close_the_loop(seed: int) -> None:
     assert _aligned_error(closed.poses, poses) < 0.8 * _aligned_error(open_chain.poses, poses)
 
 
+@pytest.mark.slow
 def test_the_default_settings_reach_the_converged_map() -> None:
     """The gauge is a weak prior, so Levenberg-Marquardt's default 10 iterations / 1e-3 end where 100
     iterations / 1e-9 do (with the oldest keyframe held at 1e-6 it stopped in a flat valley: seed 1
@@ -252,7 +253,7 @@ def _with_coarse_keypoints(keyframes: list[Keyframe], seed: int, sigmas: bool) -
     return result
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_keypoint_sigmas_weigh_coarse_keypoints_less(seed: int) -> None:
     """Keypoints found on coarse pyramid levels are located less precisely; weighing them by their
     sigma (``Keyframe.keypoint_sigmas``) gives a better map than trusting every pixel alike. Run to

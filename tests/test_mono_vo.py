@@ -227,6 +227,7 @@ def test_map_points_matched_on_a_moving_object_die(loop_frames: tuple[CameraIntr
     pytest.fail("no 4th keyframe")
 
 
+@pytest.mark.slow
 def test_new_points_are_observed_by_earlier_keyframes(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -248,6 +249,7 @@ def test_new_points_are_observed_by_earlier_keyframes(
     assert searched[0] > 1.15 * without[0], (without, searched)
 
 
+@pytest.mark.slow
 def test_duplicate_points_are_fused(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """A scene point that tracking missed is triangulated again by the next keyframe; the new
     keyframe merges such copies (measured, 80 frames of the 320x240 loop: 25 -> 7 copies in the
@@ -307,7 +309,7 @@ def test_frozen_camera_stays_initialising(loop_frames: tuple[CameraIntrinsics, l
     assert frontend.keyframes() == []
 
 
-@pytest.mark.parametrize("first_black", [40, 60])
+@pytest.mark.parametrize("first_black", [40, pytest.param(60, marks=pytest.mark.slow)])
 def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]], first_black: int) -> None:
     """After 20 black frames the camera has moved on and sees the map's newest points in a strip:
     it either relocalises to a pose that continues the trajectory or starts a new segment. (From
@@ -332,6 +334,7 @@ def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]], fi
         assert all(kf.segment == 1 for kf in frontend.keyframes() if kf.frame_index >= blackout.stop)
 
 
+@pytest.mark.slow
 def test_relocalises_when_the_camera_returns_to_a_mapped_view(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -350,6 +353,7 @@ def test_relocalises_when_the_camera_returns_to_a_mapped_view(
     assert figures["ate_percent_of_path"] < 3.0, figures["ate_percent_of_path"]
 
 
+@pytest.mark.slow
 def test_frames_lost_before_a_new_map_are_posed_in_it(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -426,6 +430,7 @@ def test_deterministic(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> Non
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_prefetched_features_change_nothing(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """Features extracted one frame ahead (``symbio run``'s feed) give the inline run's poses; a
     prefetch for a frame that never comes next is ignored."""
@@ -508,6 +513,7 @@ def test_kitti_clip_at_half_the_frame_rate(shared: Path) -> None:
     assert figures["ate_percent_of_path"] <= 0.5
 
 
+@pytest.mark.slow
 def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """A loop correction that moves the whole map by a similarity S: the keyframes land on S's
     poses (Sim(3), carrying S's scale), their points3d stay in their own units (unchanged), and the
@@ -560,6 +566,7 @@ def test_a_correction_applied_twice_moves_the_map_once(
     np.testing.assert_allclose(frontend.segment_map.points.positions, points, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_a_graded_correction_moves_the_local_map_rigidly(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -597,6 +604,7 @@ def test_a_graded_correction_moves_the_local_map_rigidly(
     np.testing.assert_allclose(baselines(), corrected, rtol=0.01)
 
 
+@pytest.mark.slow
 def test_holding_the_start_orientation_keeps_a_wall_facing_turning_start() -> None:
     """figure8 seed 8 starts 3 m from a wall, turning 1.2 deg/frame while moving sideways, where
     rotation and translation move the image almost alike. With only the first keyframe fixed (and
@@ -611,6 +619,7 @@ def test_holding_the_start_orientation_keeps_a_wall_facing_turning_start() -> No
     assert evaluate(camera, frames, ["ba.start_orientation_prior=false"], masks)["ate_percent_of_path"] > 10.0
 
 
+@pytest.mark.slow
 def test_a_single_anchor_keeps_the_window_scale(loop_frames: tuple[CameraIntrinsics, list[Frame]]) -> None:
     """When the BA window first slides past the start, one older keyframe anchors it and the
     window's scale is free unless its oldest keyframe keeps its distance from the anchor. Without

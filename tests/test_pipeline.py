@@ -164,6 +164,7 @@ class FalseLoops:
         return [LoopCandidate(keyframe.id, keyframe.id - self.offset, 10.0, {"forced": 1.0})]
 
 
+@pytest.mark.slow
 def test_forced_false_candidates_are_rejected_and_leave_the_trajectory_unchanged() -> None:
     # 100 keyframes per 1.4 laps: 35 keyframes back is half a lap, the other side of the room.
     closing, _, _ = close_loops("loop", 3, FalseLoops(35))
@@ -176,6 +177,7 @@ def test_forced_false_candidates_are_rejected_and_leave_the_trajectory_unchanged
     np.testing.assert_allclose(final, odometry, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_no_revisit_no_loop() -> None:
     closing, _, _ = close_loops("none", 4)
     assert not any(r.accepted for r in closing.loops())
@@ -289,6 +291,7 @@ def test_symbio_run_writes_every_output(small_loop_scene: Path, tmp_path: Path) 
     assert "Configuration" in (out / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_symbio_demo_closes_its_loops(demo_run: Path) -> None:
     """The embedded default halves the odometry's error with verified, true loops."""
     figures = json.loads((demo_run / METRICS_FILE).read_text())
@@ -299,6 +302,7 @@ def test_symbio_demo_closes_its_loops(demo_run: Path) -> None:
         assert (demo_run / name).stat().st_size > 0, name
 
 
+@pytest.mark.slow
 def test_the_global_bundle_adjustment_ends_a_run_with_loops(demo_run: Path, tmp_path: Path) -> None:
     """Accepted loops end in a global bundle adjustment that lowers the reprojection error and
     re-poses the tracked frames, and ``--set`` turns it off. (Whether it improves the trajectory
@@ -331,6 +335,7 @@ def test_symbio_run_viewer_writes_a_recording(small_loop_scene: Path, tmp_path: 
     assert (out / "run.rrd").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_two_runs_give_byte_identical_outputs(small_loop_scene: Path, tmp_path: Path) -> None:
     outputs = []
     for name in ("a", "b"):

@@ -114,6 +114,7 @@ def resume_error(run: Path, capsys: pytest.CaptureFixture[str], *extra: str) -> 
     return capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_resume_after_kill_gives_the_uninterrupted_outputs(
     killed_run: Path, uninterrupted_run: Path, tmp_path: Path
 ) -> None:
@@ -148,6 +149,7 @@ def test_resume_after_kill_gives_the_uninterrupted_outputs(
         (lambda payload: payload.unlink(), "unreadable"),
     ],
 )  # fmt: skip
+@pytest.mark.slow
 def test_a_damaged_checkpoint_is_refused_naming_the_file(
     killed_run: Path,
     tmp_path: Path,
@@ -162,6 +164,7 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(
     assert str(payload) in error and message in error
 
 
+@pytest.mark.slow
 def test_a_corrupt_or_missing_header_is_refused_naming_the_file(
     killed_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -173,6 +176,7 @@ def test_a_corrupt_or_missing_header_is_refused_naming_the_file(
     assert f"{header}: no checkpoint" in resume_error(run, capsys)
 
 
+@pytest.mark.slow
 def test_a_different_dataset_or_option_is_refused(
     killed_run: Path, small_loop_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

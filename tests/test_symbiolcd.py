@@ -174,6 +174,7 @@ def training_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_train_cli_and_revisits_of_a_synthetic_loop(
     training_scene: Path, small_loop_scene: Path, tmp_path: Path
 ) -> None:

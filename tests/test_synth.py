@@ -110,7 +110,13 @@ def test_movable_objects_move_and_are_flagged(full_scene: SceneRenderer) -> None
 
 
 @pytest.mark.parametrize(
-    ("kind", "has_loops"), [("loop", True), ("figure8", True), ("out-and-back", True), ("none", False)]
+    ("kind", "has_loops"),
+    [
+        ("loop", True),
+        pytest.param("figure8", True, marks=pytest.mark.slow),
+        pytest.param("out-and-back", True, marks=pytest.mark.slow),
+        pytest.param("none", False, marks=pytest.mark.slow),
+    ],
 )
 def test_ground_truth_loops_by_trajectory(kind: str, has_loops: bool) -> None:
     config = small_config(trajectory=kind, frames=300)

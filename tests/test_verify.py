@@ -9,6 +9,7 @@ import pytest
 
 from eval.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.errors import ConfigError
+from frontends.orb import match_descriptors
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
 from frontends.types import Keyframe
@@ -18,7 +19,6 @@ from slam_backend.verify import (
     VerifierConfig,
     colmap_camera,
     create,
-    match_descriptors,
     verify_two_view,
 )
 
@@ -80,7 +80,9 @@ def test_degenerate_keyframes(renderer: SceneRenderer, verifier: Verifier) -> No
 
 def test_matching_is_mutual_and_config_is_validated(renderer: SceneRenderer) -> None:
     keyframe = keyframe_with_depth(renderer, 6, 0)
-    pairs = match_descriptors(keyframe.descriptors, keyframe.descriptors, 0.8, 80)
+    pairs = np.stack(
+        match_descriptors(keyframe.descriptors, keyframe.descriptors, 0.8, 80, mutual=True), axis=1
+    )
     assert len(pairs) > 0.9 * len(keyframe.descriptors) and np.all(pairs[:, 0] == pairs[:, 1])
     with pytest.raises(ConfigError, match="ratio"):
         create(scene_camera(renderer), ["ratio=1.5"])
@@ -130,7 +132,9 @@ def test_matching_equals_the_full_mutual_ratio_test() -> None:
         # Odd trials flip a few low bits: near-duplicates instead of exact ones.
         noisy = a ^ (rng.random(a.shape) < 0.02).astype(np.uint8) if trial % 2 else a
         expected = _mutual_ratio_matches(noisy, b, 0.8, 80)
-        np.testing.assert_array_equal(match_descriptors(noisy, b, 0.8, 80), expected)
+        np.testing.assert_array_equal(
+            np.stack(match_descriptors(noisy, b, 0.8, 80, mutual=True), axis=1), expected
+        )
         found += len(expected)
     assert found > 100
 

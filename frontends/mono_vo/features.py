@@ -7,12 +7,13 @@ quadtree for the same reason: tracking and PnP need corners everywhere, not only
 textured patch.
 
 Matching: ``match_in_radius`` pairs projected map points with keypoints within a pixel radius (a
-k-d tree gives the candidate pairs in C), takes the Hamming distance of every candidate pair with
-``np.bitwise_count`` on 64-bit words, and keeps the best pair per point when it passes the distance
-limit and Lowe's ratio test, one point per keypoint. No Python loop runs per point. Only keypoints
-within one pyramid level of the point's predicted level are candidates (ORB-SLAM's scale
-prediction): in repetitive texture a wrong patch nearby often matches a descriptor well, but seldom
-at the right scale. ``consistent_rotation`` is ORB-SLAM's orientation histogram over the matches.
+k-d tree gives the candidate pairs in C), takes the Hamming distance of every candidate pair
+(``frontends.orb.hamming``: ``np.bitwise_count`` on 64-bit words), and keeps the best pair per
+point when it passes the distance limit and Lowe's ratio test, one point per keypoint. No Python
+loop runs per point. Only keypoints within one pyramid level of the point's predicted level are
+candidates (ORB-SLAM's scale prediction): in repetitive texture a wrong patch nearby often matches
+a descriptor well, but seldom at the right scale. ``consistent_rotation`` is ORB-SLAM's orientation
+histogram over the matches.
 """
 
 from __future__ import annotations
@@ -22,11 +23,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.orb import OrbConfig, detect_orb
+from frontends.orb import OrbConfig, detect_orb, hamming, unique_targets
 from frontends.types import CameraIntrinsics
 
 
@@ -86,13 +86,6 @@ def octave_sigmas(octave_sigma: np.ndarray, octaves: np.ndarray) -> np.ndarray:
     return octave_sigma[np.minimum(octaves, len(octave_sigma) - 1)]
 
 
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise Hamming distance of two (K, 32) uint8 descriptor arrays."""
-    words_a = np.ascontiguousarray(a).view(np.uint64)
-    words_b = np.ascontiguousarray(b).view(np.uint64)
-    return np.bitwise_count(words_a ^ words_b).sum(axis=1, dtype=np.int64)
-
-
 def match_in_radius(
     projected: np.ndarray,
     point_descriptors: np.ndarray,
@@ -148,33 +141,6 @@ def best_two_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndar
     second = np.full(len(first), np.inf)
     second[has_second] = distance[order[first[has_second] + 1]]
     return order[first], second
-
-
-def unique_targets(
-    source: np.ndarray, target: np.ndarray, distance: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Keep one match per target: the one with the smallest distance."""
-    order = np.lexsort((distance, target))
-    sorted_target = target[order]
-    first = order[np.r_[True, sorted_target[1:] != sorted_target[:-1]]] if len(order) else order
-    return source[first], target[first]
-
-
-def match_descriptors(
-    query: np.ndarray, train: np.ndarray, ratio: float, max_hamming: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Brute-force Hamming matches with Lowe's ratio test, one query per train descriptor."""
-    none = np.zeros(0, np.int64)
-    if len(query) < 2 or len(train) < 2:
-        return none, none
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
-    rows = np.array(
-        [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in pairs if len(m) == 2],
-        dtype=np.float64,
-    ).reshape(-1, 4)
-    accept = (rows[:, 2] <= max_hamming) & (rows[:, 2] < ratio * rows[:, 3])
-    rows = rows[accept]
-    return unique_targets(rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64), rows[:, 2])
 
 
 class PrefetchingExtractor:

@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
-from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, hamming, octave_sigmas
+from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
 from frontends.mono_vo.geometry import frame_seed, invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
@@ -54,6 +54,7 @@ from frontends.mono_vo.map import KeyframeState, SegmentMap
 from frontends.mono_vo.masking import Partner, dynamic_keypoints, follow_moving, inside, judge_boxes
 from frontends.mono_vo.tracker import PoseEstimate, Tracker
 from frontends.mono_vo.triangulation import triangulate_new_points
+from frontends.orb import hamming
 from frontends.types import CameraIntrinsics, Frame, Keyframe
 
 log = logging.getLogger(__name__)

@@ -27,8 +27,9 @@ import cv2
 import numpy as np
 
 from frontends.mono_vo.config import InitSettings
-from frontends.mono_vo.features import Features, match_descriptors
+from frontends.mono_vo.features import Features
 from frontends.mono_vo.geometry import check_triangulated, fit_or_none, frame_seed, triangulate, usac_params
+from frontends.orb import match_descriptors
 
 log = logging.getLogger(__name__)
 

@@ -191,7 +191,8 @@ class SegmentMap:
 
     def cull(self, current_keyframe_id: int, min_found_ratio: float = 0.25) -> int:
         """ORB-SLAM's culling rules: rarely matched when visible (here for points of any age, where
-        ORB-SLAM checks only recent ones; limiting it to recent points measured neutral, README), or
+        ORB-SLAM checks only recent ones; limiting it to recent points measured neutral, docs/slam-runs.md,
+        "Measured and not adopted"), or
         seen by <= 2 keyframes two keyframes after their creation. Returns how many points died."""
         p = self.points
         age = current_keyframe_id - p.first_keyframe

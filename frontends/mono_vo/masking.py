@@ -46,7 +46,7 @@ import numpy as np
 from scipy.stats import binom
 
 from frontends.mono_vo.config import MaskingSettings
-from frontends.mono_vo.features import Features, match_descriptors, octave_sigmas
+from frontends.mono_vo.features import Features, octave_sigmas
 from frontends.mono_vo.geometry import (
     check_triangulated,
     epipolar_distance,
@@ -56,6 +56,7 @@ from frontends.mono_vo.geometry import (
     transform,
     triangulate,
 )
+from frontends.orb import match_descriptors
 
 Verdict = Literal["moving", "static", "unknown"]
 

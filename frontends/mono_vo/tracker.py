@@ -44,13 +44,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.mono_vo.config import RelocalisationSettings, TrackingSettings
-from frontends.mono_vo.features import (
-    Features,
-    consistent_rotation,
-    match_descriptors,
-    match_in_radius,
-    octave_sigmas,
-)
+from frontends.mono_vo.features import Features, consistent_rotation, match_in_radius, octave_sigmas
 from frontends.mono_vo.geometry import (
     fit_or_none,
     frame_seed,
@@ -63,6 +57,7 @@ from frontends.mono_vo.geometry import (
     usac_params,
 )
 from frontends.mono_vo.map import SegmentMap
+from frontends.orb import match_descriptors
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.mono_vo.config import KeyframeSettings
-from frontends.mono_vo.features import best_two_per_group, hamming, octave_sigmas, unique_targets
+from frontends.mono_vo.features import best_two_per_group, octave_sigmas
 from frontends.mono_vo.geometry import (
     check_triangulated,
     epipolar_distance,
@@ -28,6 +28,7 @@ from frontends.mono_vo.geometry import (
     triangulate,
 )
 from frontends.mono_vo.map import KeyframeState, SegmentMap
+from frontends.orb import hamming, unique_targets
 
 
 def triangulate_new_points(
