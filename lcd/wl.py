@@ -34,12 +34,25 @@ keyframe, ~40k per keyframe, in the dictionary and in the feature matrix. Instea
   its own neighbours continued too, nothing changes any more (the neighbour multisets advance in
   lock step), so the remaining iterations are filled in without lookups.
 Self-similarities come from the graph's own partitions: ``sum_t sum_classes size^2``.
+
+IDF weighting (``idf_power`` p = 1 or 2; 0, the default, is the plain kernel above, unchanged):
+``k(G, G') = sum_t sum_l w(l) phi_t(G)[l] phi_t(G')[l]`` with ``w(l) = idf(r)^p``, r the input
+label (iteration 0) that label l descends from (a WL label determines its previous one, so every
+label, and every chain, has one root), ``idf(r) = ln(N / df(r))`` over the stored graphs *and the
+query* (N = stored + 1; df counts the query if it holds r), so a query's scores do not depend on
+whether it is stored afterwards and no weight is infinite. p = 2 is the cosine of TF-IDF label
+histograms. Scores always use the current IDF for the stored graphs too: each stored graph keeps
+``Q(r) = sum_t sum_{classes of root r} size^2`` per root (root postings) and the sums
+``S = sum_r Q``, ``A1 = sum_r Q ln df``, ``A2 = sum_r Q ln^2 df``, from which its self-similarity
+under any N is ``S ln^2 N - 2 A1 ln N + A2`` (p = 2) or ``S ln N - A1`` (p = 1); the query's roots
+change df by one for the graphs in their root postings (a correction read at scoring), and adding
+a graph updates A1, A2 of those graphs. Both reads cost what a query's iteration-0 postings cost.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -180,6 +193,23 @@ def _refine(graph: LabelledGraph, iterations: int) -> _Refinement:
     return _Refinement(labels, indptr, indices, partitions, representatives, self_similarity)
 
 
+def _root_mass(ref: _Refinement, iterations: int) -> np.ndarray:
+    """``Q(r) = sum_t sum_{classes of root r} size^2`` per input label r (class of partition 0)."""
+    root = ref.partitions[0]
+    mass = np.zeros(len(ref.representatives[0]), dtype=np.float64)
+    last = len(ref.partitions) - 1
+    for t, (partition, reps) in enumerate(zip(ref.partitions, ref.representatives, strict=True)):
+        times = 1 if t < last else iterations + 1 - last
+        squares = np.square(np.bincount(partition)).astype(np.float64)
+        mass += times * np.bincount(root[reps], weights=squares, minlength=len(mass))
+    return mass
+
+
+def _idf_weight(log_n: float, df: np.ndarray, power: int) -> np.ndarray:
+    """``ln(N / df)^power`` (df >= 1)."""
+    return (log_n - np.log(df.astype(np.float64))) ** power
+
+
 def _capacity(sizes: np.ndarray) -> np.ndarray:
     """The smallest power of two >= each size (0 for 0)."""
     exponent = np.frexp(np.maximum(sizes - 1, 0).astype(np.float64))[1]
@@ -271,15 +301,22 @@ class _Relabelled:
     adjacency_lengths: np.ndarray
     adjacency: np.ndarray
     ready: np.ndarray
+    #: IDF mode: root chain of each input label of the graph (-1: unknown), and its ``Q(r)``.
+    roots: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    root_mass: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.float64))
 
 
 class WLKernel:
     """Exact incremental WL subtree kernel (see the module docstring); h = ``iterations``."""
 
-    def __init__(self, iterations: int) -> None:
+    def __init__(self, iterations: int, idf_power: int = 0) -> None:
         if iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {iterations}")
+        if idf_power not in (0, 1, 2):
+            raise ValueError(f"idf_power must be 0, 1 or 2, got {idf_power}")
         self.iterations = iterations
+        #: 0 = the plain kernel; 1 / 2 = labels weighted by idf / idf^2 of their root (docstring).
+        self.idf_power = idf_power
         self._width = iterations + 1
         #: Input label -> label id (iteration 0).
         self._initial: dict[int, int] = {}
@@ -299,6 +336,16 @@ class WLKernel:
         self._ready = _Buffer(np.int64)
         self._self_similarity = _Buffer(np.float64)
         self._postings = _Postings()
+        # IDF mode only: per chain its root chain (an iteration-0 label's chain) and, for roots,
+        # df (stored graphs holding the root) and the postings (graph, Q); per graph S, A1, A2.
+        self._chain_root = _Buffer(np.int64)
+        self._df = _Buffer(np.int64)
+        self._root_postings = _Postings()
+        self._mass = _Buffer(np.float64)
+        self._log_mass = _Buffer(np.float64)
+        self._log2_mass = _Buffer(np.float64)
+        #: The last scoring's root postings, (roots array, gathered), for the store that follows.
+        self._gathered: tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     def __len__(self) -> int:
         return len(self._self_similarity)
@@ -338,11 +385,12 @@ class WLKernel:
         labels[hit] = [f for f in found if f is not None]
         if add and not hit.all():
             missing = np.flatnonzero(~hit)
-            labels[missing] = self._create(missing, 0, s, offset)
+            labels[missing] = self._create(missing, 0, s, offset, None)
             self._initial.update(
                 zip(ref.labels[reps[missing]].tolist(), labels[missing].tolist(), strict=True)
             )
         starts = np.ones(len(reps), dtype=bool)
+        roots = np.where(labels >= 0, labels // self._width, -1)
         self._record(columns_labels, columns_starts, ref, 0, labels, starts)
         # Neighbour units of the final classes, fixed from iteration s on.
         final_seg, final_nodes = _ranges(ref.indptr[final_reps], np.diff(ref.indptr)[final_reps])
@@ -368,15 +416,25 @@ class WLKernel:
         runs = self._runs(columns_labels, columns_starts, np.bincount(final, minlength=k))
         if not add:
             empty = np.zeros(0, dtype=np.int64)
-            return _Relabelled(*runs, ref.self_similarity, empty, empty, empty, empty, empty)
-        return self._trajectory(
-            ref, columns_labels, columns_starts, final_seg, final_neighbour_units, runs, offset
-        )
+            relabelled = _Relabelled(*runs, ref.self_similarity, empty, empty, empty, empty, empty)
+        else:
+            relabelled = self._trajectory(
+                ref, columns_labels, columns_starts, final_seg, final_neighbour_units, runs, offset
+            )
+        if self.idf_power:
+            relabelled = replace(relabelled, roots=roots, root_mass=_root_mass(ref, h))
+        return relabelled
 
-    def _create(self, units: np.ndarray, t: int, s: int, offset: int) -> np.ndarray:
+    def _create(self, units: np.ndarray, t: int, s: int, offset: int, roots: np.ndarray | None) -> np.ndarray:
         """New chain-start labels of ``units`` at iteration t: chains to h anchored at the unit's global
-        class once the partition is final (t >= s), else single labels."""
+        class once the partition is final (t >= s), else single labels. ``roots``: the new chains' root
+        chains (None: they are roots, at t = 0)."""
         first = len(self._chain_length)
+        if self.idf_power:
+            own = np.arange(first, first + len(units), dtype=np.int64)
+            self._chain_root.extend(own if roots is None else roots)
+            self._df.extend(np.zeros(len(units), dtype=np.int64))
+            self._root_postings.add_chains(len(units))
         final = t >= s
         self._chain_length.extend(
             np.full(len(units), self.iterations - t + 1 if final else 1, dtype=np.int64)
@@ -440,7 +498,8 @@ class WLKernel:
             starts[rest[hit]] = True
             if add and not hit.all():
                 missing = rest[~hit]
-                labels[missing] = self._create(missing, t, s, offset)
+                roots = self._chain_root.view()[prev[missing] // width] if self.idf_power else None
+                labels[missing] = self._create(missing, t, s, offset, roots)
                 starts[missing] = True
                 new_keys = [key for key, h in zip(keys, hit.tolist(), strict=True) if not h]
                 self._signatures.update(zip(new_keys, labels[missing].tolist(), strict=True))
@@ -579,6 +638,67 @@ class WLKernel:
         self._ready.extend(r.ready)
         self._self_similarity.extend(np.array([r.self_similarity]))
         self._postings.append(r.chains, np.full(len(r.chains), row, dtype=np.int64), r.runs, r.counts)
+        if self.idf_power:
+            self._store_roots(r.roots, r.root_mass, row)
+
+    def _gather_roots(self, roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(index into ``roots``, graph, Q) of the root postings of ``roots`` (>= 0)."""
+        postings = self._root_postings
+        owner, position = _ranges(postings.start.view()[roots], postings.size.view()[roots])
+        return owner, postings.graph.view()[position], postings.count.view()[position].astype(np.float64)
+
+    def _store_roots(self, roots: np.ndarray, mass: np.ndarray, row: int) -> None:
+        """df of the graph's roots grows by one: A1, A2 of the graphs holding them follow."""
+        df = self._df.view()
+        old = df[roots].astype(np.float64)
+        cached, self._gathered = self._gathered, None
+        # add_and_query: the scoring read these postings already (nothing was appended since).
+        owner, graphs, q = (
+            cached[1] if cached is not None and cached[0] is roots else self._gather_roots(roots)
+        )
+        if len(graphs):
+            # A root new to the store (df 0) has no postings: its log is never read.
+            log_old, log_new = np.log(np.maximum(old, 1.0)), np.log(old + 1.0)
+            self._log_mass.view()[:] += np.bincount(graphs, q * (log_new - log_old)[owner], minlength=row)
+            self._log2_mass.view()[:] += np.bincount(
+                graphs, q * (log_new**2 - log_old**2)[owner], minlength=row
+            )
+        df[roots] += 1
+        log_df = np.log(old + 1.0)
+        self._mass.extend(np.array([mass.sum()]))
+        self._log_mass.extend(np.array([(mass * log_df).sum()]))
+        self._log2_mass.extend(np.array([(mass * log_df**2).sum()]))
+        order = np.argsort(roots, kind="stable")
+        self._root_postings.append(
+            roots[order],
+            np.full(len(roots), row, dtype=np.int64),
+            np.zeros(len(roots), np.int64),
+            mass[order].astype(np.int64),
+        )
+
+    def _idf_norms(self, r: _Relabelled, log_n: float) -> tuple[float, np.ndarray]:
+        """Self-similarities of the query and of every stored graph under the IDF with the query."""
+        p, n = self.idf_power, len(self)
+        known = r.roots >= 0
+        df = np.ones(len(r.roots), dtype=np.int64)
+        df[known] += self._df.view()[r.roots[known]]
+        query = float((r.root_mass * _idf_weight(log_n, df, p)).sum())
+        mass, a1 = self._mass.view(), self._log_mass.view()
+        if p == 1:
+            stored = mass * log_n - a1
+        else:
+            stored = mass * log_n**2 - 2.0 * log_n * a1 + self._log2_mass.view()
+        roots = r.roots[known]
+        old = self._df.view()[roots]
+        owner, graphs, q = self._gather_roots(roots)
+        if known.all():  # the roots of a graph being added: ``_store_roots`` reads the same postings
+            self._gathered = (r.roots, (owner, graphs, q))
+        if len(graphs):
+            seen = old > 0
+            change = np.zeros(len(roots))
+            change[seen] = _idf_weight(log_n, old[seen] + 1, p) - _idf_weight(log_n, old[seen], p)
+            stored = stored + np.bincount(graphs, q * change[owner], minlength=n)
+        return query, np.maximum(stored, 0.0)
 
     def _scores(self, r: _Relabelled) -> np.ndarray:
         n = len(self)
@@ -589,8 +709,16 @@ class WLKernel:
         owner, position = _ranges(postings.start.view()[chains], postings.size.view()[chains])
         shared = np.minimum(runs[owner], postings.run.view()[position])
         weights = (counts[owner] * postings.count.view()[position] * shared).astype(np.float64)
+        if self.idf_power:
+            # Every shared chain's root is one of the query's: its df with the query is df + 1.
+            log_n = float(np.log(n + 1))
+            df = self._df.view()[self._chain_root.view()[chains]] + 1
+            weights *= _idf_weight(log_n, df, self.idf_power)[owner]
+            query, stored_norms = self._idf_norms(r, log_n)
+            norms = np.sqrt(query * stored_norms)
+        else:
+            norms = np.sqrt(r.self_similarity * self._self_similarity.view())
         raw = np.bincount(postings.graph.view()[position], weights=weights, minlength=n)
-        norms = np.sqrt(r.self_similarity * self._self_similarity.view())
         out = np.zeros(n, dtype=np.float64)
         np.divide(raw, norms, out=out, where=norms > 0)
         return out
@@ -602,7 +730,22 @@ class WLKernel:
         signatures = list(self._signatures.items())
         key_data = b"".join(key for key, _ in signatures)
         chains, graphs, runs, counts = self._postings.listed()
+        idf: dict[str, np.ndarray] = {}
+        if self.idf_power:
+            root_chains, root_graphs, _, root_counts = self._root_postings.listed()
+            idf = {
+                "chain_root": self._chain_root.view().copy(),
+                "df": self._df.view().copy(),
+                "root_posting_chains": root_chains,
+                "root_posting_graphs": root_graphs,
+                "root_posting_counts": root_counts,
+                "mass": self._mass.view().copy(),
+                "log_mass": self._log_mass.view().copy(),
+                "log2_mass": self._log2_mass.view().copy(),
+            }
         return {
+            **idf,
+            "idf_power": np.array([self.idf_power], dtype=np.int64),
             "iterations": np.array([self.iterations], dtype=np.int64),
             "initial_keys": np.array(list(self._initial.keys()), dtype=np.int64),
             "initial_values": np.array(list(self._initial.values()), dtype=np.int64),
@@ -625,7 +768,8 @@ class WLKernel:
 
     @classmethod
     def from_state(cls, state: Mapping[str, np.ndarray]) -> WLKernel:
-        kernel = cls(int(state["iterations"][0]))
+        idf_power = int(state["idf_power"][0]) if "idf_power" in state else 0
+        kernel = cls(int(state["iterations"][0]), idf_power)
         kernel._initial = dict(
             zip(state["initial_keys"].tolist(), state["initial_values"].tolist(), strict=True)
         )
@@ -648,6 +792,20 @@ class WLKernel:
         kernel._postings.append(
             *(state[f"posting_{name}"].astype(np.int64) for name in ("chains", "graphs", "runs", "counts"))
         )
+        if idf_power:
+            kernel._chain_root = _Buffer(np.int64, state["chain_root"])
+            kernel._df = _Buffer(np.int64, state["df"])
+            kernel._root_postings.add_chains(len(kernel._chain_root))
+            root_chains = state["root_posting_chains"].astype(np.int64)
+            kernel._root_postings.append(
+                root_chains,
+                state["root_posting_graphs"].astype(np.int64),
+                np.zeros(len(root_chains), dtype=np.int64),
+                state["root_posting_counts"].astype(np.int64),
+            )
+            kernel._mass = _Buffer(np.float64, state["mass"])
+            kernel._log_mass = _Buffer(np.float64, state["log_mass"])
+            kernel._log2_mass = _Buffer(np.float64, state["log2_mass"])
         return kernel
 
 

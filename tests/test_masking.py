@@ -22,7 +22,7 @@ from eval.run import METRICS_FILE, TRAJECTORY_FILE
 from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.mono_vo import MonoVoConfig, create
-from frontends.mono_vo.config import MaskingSettings
+from frontends.mono_vo.config import MaskingConfig
 from frontends.mono_vo.features import Features, OrbExtractor
 from frontends.mono_vo.geometry import invert, project, transform
 from frontends.mono_vo.masking import (
@@ -84,7 +84,7 @@ def judge(
 ) -> tuple[list[BoxEvidence], np.ndarray]:
     """The boxes' evidence and the keypoints masked; every box may be kept unless ``may_keep``."""
     own, partner = views
-    config = MaskingSettings(**settings)
+    config = MaskingConfig(**settings)
     evidence, _ = judge_boxes(boxes, own, KEYFRAME_T_CW, partner, K, OCTAVE_SIGMA, DIAGONAL, config, 0)
     keep = [True] * len(boxes) if may_keep is None else may_keep
     return evidence, dynamic_keypoints(own.keypoints, evidence, keep, config)
@@ -212,7 +212,7 @@ def test_rendered_person_moves_and_the_scene_beside_it_does_not(
     own = extractor.extract(frames[32].gray)
     boxes = [people[32][0], car_beside(camera, people[32])]
     diagonal = float(np.hypot(camera.width, camera.height))
-    settings = MaskingSettings()
+    settings = MaskingConfig()
     (person, car), _ = judge_boxes(
         boxes, own, invert(frames[32].gt_pose), partner, camera.K, OCTAVE_SIGMA, diagonal, settings, 0
     )
@@ -220,6 +220,7 @@ def test_rendered_person_moves_and_the_scene_beside_it_does_not(
     assert car.verdict == "static" and car.keypoints > 0.3 * len(own), car
 
 
+@pytest.mark.slow
 def test_a_large_static_box_does_not_starve_tracking(
     person_crossing: tuple[CameraIntrinsics, list[Frame], list[list[tuple[int, int, int, int]]]],
 ) -> None:

@@ -23,7 +23,7 @@ from frontends.config import load_config
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError, DatasetError
 from frontends.mono_vo import MonoVoConfig, create
-from frontends.mono_vo.config import KeyframeSettings
+from frontends.mono_vo.config import KeyframeConfig
 from frontends.mono_vo.features import Features, OrbExtractor, consistent_rotation, match_in_radius
 from frontends.mono_vo.frontend import MonoVo, covariance_inflation, triangulation_partners
 from frontends.mono_vo.geometry import (
@@ -41,7 +41,7 @@ from frontends.synth import SynthConfig
 from frontends.synth.render import SceneRenderer
 from frontends.types import CameraIntrinsics, Frame
 
-#: The opt-in neighbour search with the keyframe rule it needs (``KeyframeSettings.search_neighbours``).
+#: The opt-in neighbour search with the keyframe rule it needs (``KeyframeConfig.search_neighbours``).
 NEIGHBOUR_SEARCH = ["keyframes.search_neighbours=8", "keyframes.tracked_ratio=0.7"]
 
 
@@ -309,7 +309,8 @@ def test_frozen_camera_stays_initialising(loop_frames: tuple[CameraIntrinsics, l
     assert frontend.keyframes() == []
 
 
-@pytest.mark.parametrize("first_black", [40, pytest.param(60, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("first_black", [40, 60])
+@pytest.mark.slow
 def test_blackout_recovers(loop_frames: tuple[CameraIntrinsics, list[Frame]], first_black: int) -> None:
     """After 20 black frames the camera has moved on and sees the map's newest points in a strip:
     it either relocalises to a pose that continues the trajectory or starts a new segment. (From
@@ -385,6 +386,7 @@ def test_frames_lost_before_a_new_map_are_posed_in_it(
     assert steps.max() < 5 * np.median(steps), steps
 
 
+@pytest.mark.slow
 def test_no_frames_kept_for_backfilling_when_disabled(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -401,6 +403,7 @@ def test_no_frames_kept_for_backfilling_when_disabled(
     "median reprojection 0.31-0.47 px for both right and wrong K; planar camera motion is a degenerate "
     "case for focal self-calibration); also not detected on KITTI 06, figure8, out-and-back",
 )
+@pytest.mark.slow
 def test_wrong_intrinsics_warn(
     loop_frames: tuple[CameraIntrinsics, list[Frame]], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -545,6 +548,7 @@ def test_tracking_continues_in_a_corrected_map(loop_frames: tuple[CameraIntrinsi
         assert angle_deg((np.trace(a.pose[:3, :3].T @ expected[:3, :3] / 1.7) - 1) / 2) < 0.5
 
 
+@pytest.mark.slow
 def test_a_correction_applied_twice_moves_the_map_once(
     loop_frames: tuple[CameraIntrinsics, list[Frame]],
 ) -> None:
@@ -670,9 +674,7 @@ def test_triangulation_partners_prefer_a_baseline_with_parallax() -> None:
     scene, those whose baseline gives points at the median depth the parallax triangulation accepts
     (3 % of the depth: 1.7 deg) come first, then the newest others above 1 %; a wide keyframe that
     sees another scene (before a turn) is no partner unless no keyframe shares the scene."""
-    settings = KeyframeSettings(
-        min_baseline_ratio=0.01, preferred_baseline_ratio=0.03, partner_min_shared=0.2
-    )
+    settings = KeyframeConfig(min_baseline_ratio=0.01, preferred_baseline_ratio=0.03, partner_min_shared=0.2)
     depth = 2.0
 
     def partners(ratios: list[float], shared: list[int], tracked: int = 100) -> list[int]:
@@ -699,13 +701,13 @@ def test_oracle_masks_miss_boxes_at_their_rate() -> None:
 
 
 def test_default_triangulation_partners_are_the_newest_above_the_minimum_baseline() -> None:
-    settings = KeyframeSettings()
+    settings = KeyframeConfig()
     depth = 2.0
     baselines = [r * depth for r in (0.005, 0.02, 0.04, 0.012, 0.06)]
     assert triangulation_partners(baselines, [0, 90, 0, 90, 0], 100, depth, settings) == [2, 4]
 
 
-@pytest.mark.parametrize("baseline_ratio", [0.01, KeyframeSettings().min_baseline_ratio])
+@pytest.mark.parametrize("baseline_ratio", [0.01, KeyframeConfig().min_baseline_ratio])
 def test_the_parallax_limit_keeps_unbiased_depths_only_from_wide_enough_partners(
     baseline_ratio: float,
 ) -> None:
@@ -714,7 +716,7 @@ def test_the_parallax_limit_keeps_unbiased_depths_only_from_wide_enough_partners
     shortened their depth (each such keyframe shrinks the map); from the default minimum baseline
     the depths are unbiased."""
     rng = np.random.default_rng(3)
-    settings = KeyframeSettings()
+    settings = KeyframeConfig()
     K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
     n = 4000
     depth = rng.uniform(2.0, 4.0, n)

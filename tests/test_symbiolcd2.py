@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -88,7 +89,26 @@ def test_ablations_are_registered_and_config_is_validated() -> None:
         create(["no_such_key=1"])
     with pytest.raises(ConfigError):
         create(["wl_backend=networkx"])
+    with pytest.raises(ConfigError, match="idf_power"):
+        create(["idf_power=3"])
+    with pytest.raises(ConfigError, match="idf_power"):
+        create(["idf_power=2", "wl_backend=grakel"])
+    assert create(["idf_power=2"]).kernel.idf_power == 2  # type: ignore[union-attr]
     assert SymbioLCD2Config().iterations == 10 and SymbioLCD2Config().graph.margin_px == 25
+
+
+def test_idf_kernel_survives_a_checkpoint() -> None:
+    """A detector with the IDF kernel pickled mid-sequence answers as the uninterrupted one."""
+    objects = (DetectedObject("chair", 0.9, (10, 10, 120, 150)),)
+    keyframes = [_keyframe(i, i % 4, objects if i % 3 else (), count=120) for i in range(16)]
+    detector = create(["idf_power=2", "temporal_window=2"])
+    for keyframe in keyframes[:8]:
+        detector.add(keyframe)
+    resumed = pickle.loads(pickle.dumps(detector))
+    for keyframe in keyframes[8:]:
+        a, b = detector.add(keyframe), resumed.add(keyframe)
+        assert [(c.match, c.score) for c in a] == [(c.match, c.score) for c in b]
+        assert a
 
 
 def test_finds_the_loops_of_a_synthetic_scene(small_loop_scene: Path) -> None:

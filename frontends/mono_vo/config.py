@@ -18,7 +18,7 @@ from frontends.orb import TRACKING_ORB, OrbConfig
 
 
 @dataclass(frozen=True)
-class InitSettings:
+class InitConfig:
     """Two-view initialisation (ORB-SLAM's model selection and acceptance rules)."""
 
     #: Matches between the reference and the current frame needed to attempt (else new reference).
@@ -66,7 +66,7 @@ class InitSettings:
 
 
 @dataclass(frozen=True)
-class TrackingSettings:
+class TrackingConfig:
     #: Search radius (px) around the constant-velocity prediction, and after the PnP pose.
     search_radius: float = 15.0
     #: Search radius (px) around the PnP pose, for the second round of matches.
@@ -110,7 +110,7 @@ class TrackingSettings:
 
 
 @dataclass(frozen=True)
-class KeyframeSettings:
+class KeyframeConfig:
     #: A frame becomes a keyframe when it tracks fewer than ``tracked_ratio`` of the last keyframe's
     #: established points (seen by >= 3 keyframes; ORB-SLAM's rule) or ``min_tracked_share`` of all
     #: its points ...
@@ -227,7 +227,7 @@ class KeyframeSettings:
 
 
 @dataclass(frozen=True)
-class BundleAdjustmentSettings:
+class BundleAdjustmentConfig:
     #: Run local bundle adjustment after each keyframe.
     enabled: bool = True
     #: Keyframes optimised after each new keyframe (older ones that see the same points stay fixed).
@@ -257,7 +257,7 @@ class BundleAdjustmentSettings:
 
 
 @dataclass(frozen=True)
-class RelocalisationSettings:
+class RelocalisationConfig:
     #: Recent keyframes tried as anchors for a lost frame.
     max_keyframes: int = 12
     #: Lowe ratio of the matches between a lost frame and an anchor keyframe.
@@ -302,7 +302,7 @@ class RelocalisationSettings:
 
 
 @dataclass(frozen=True)
-class IntrinsicsCheckSettings:
+class IntrinsicsCheckConfig:
     #: Warn when the essential matrix keeps less than this share of the fundamental matrix's inliers ...
     min_essential_share: float = 0.85
     #: ... or the bundle-adjusted median reprojection error of the first keyframes exceeds this (px).
@@ -312,7 +312,7 @@ class IntrinsicsCheckSettings:
 
 
 @dataclass(frozen=True)
-class MaskingSettings:
+class MaskingConfig:
     """Which detected movable objects a keyframe keeps out of the map (``masking``; the detector's
     boxes come through ``set_dynamic_objects``). DynaSLAM (monocular) masks every detected movable
     object; DS-SLAM masks a segmented person only when its points fail its epipolar check."""
@@ -394,16 +394,17 @@ class MonoVoConfig:
     min_features: int = 100
     #: ORB extraction (``frontends.orb``; the tracking preset: dense, spread, two thresholds per cell).
     orb: OrbConfig = field(default_factory=lambda: TRACKING_ORB)
-    #: Two-view initialisation of a map (``InitSettings``).
-    init: InitSettings = field(default_factory=InitSettings)
-    #: Tracking each frame against the local map (``TrackingSettings``).
-    tracking: TrackingSettings = field(default_factory=TrackingSettings)
-    #: Keyframe selection, triangulation and odometry covariance (``KeyframeSettings``).
-    keyframes: KeyframeSettings = field(default_factory=KeyframeSettings)
-    #: Local bundle adjustment after each keyframe (``BundleAdjustmentSettings``).
-    ba: BundleAdjustmentSettings = field(default_factory=BundleAdjustmentSettings)
-    #: Recovering a lost frame, and backfilling frames before the map (``RelocalisationSettings``).
-    relocalisation: RelocalisationSettings = field(default_factory=RelocalisationSettings)
-    #: Warnings that the camera intrinsics look wrong (``IntrinsicsCheckSettings``).
-    intrinsics_check: IntrinsicsCheckSettings = field(default_factory=IntrinsicsCheckSettings)
-    masking: MaskingSettings = field(default_factory=MaskingSettings)
+    #: Two-view initialisation of a map (``InitConfig``).
+    init: InitConfig = field(default_factory=InitConfig)
+    #: Tracking each frame against the local map (``TrackingConfig``).
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    #: Keyframe selection, triangulation and odometry covariance (``KeyframeConfig``).
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    #: Local bundle adjustment after each keyframe (``BundleAdjustmentConfig``).
+    ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    #: Recovering a lost frame, and backfilling frames before the map (``RelocalisationConfig``).
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
+    #: Warnings that the camera intrinsics look wrong (``IntrinsicsCheckConfig``).
+    intrinsics_check: IntrinsicsCheckConfig = field(default_factory=IntrinsicsCheckConfig)
+    #: Which movable-object boxes are masked from tracking (``MaskingConfig``).
+    masking: MaskingConfig = field(default_factory=MaskingConfig)

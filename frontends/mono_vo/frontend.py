@@ -45,7 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.base import PointObservations, TrackingState, TrackResult
-from frontends.mono_vo.config import KeyframeSettings, MonoVoConfig
+from frontends.mono_vo.config import KeyframeConfig, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
 from frontends.mono_vo.geometry import frame_seed, invert, linear_map, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
@@ -582,7 +582,7 @@ class MonoVo:
 
     def _odometry_covariance(self, previous: KeyframeState, current: KeyframeState) -> np.ndarray:
         """Covariance of the Sim(3) motion between two keyframes: rotation, translation, log-scale,
-        inflated when they share few map points (``KeyframeSettings.covariance_exponent``)."""
+        inflated when they share few map points (``KeyframeConfig.covariance_exponent``)."""
         s = self.config.keyframes
         inflation = covariance_inflation(self.segment_map.shared_points(previous, current), s)
         distance = float(np.linalg.norm(invert(current.T_cw)[:3, 3] - invert(previous.T_cw)[:3, 3]))
@@ -661,7 +661,7 @@ def triangulation_partners(
     shared: Sequence[int],
     tracked: int,
     median_depth: float,
-    settings: KeyframeSettings,
+    settings: KeyframeConfig,
 ) -> list[int]:
     """Indices into the recent keyframes (newest first; their ``baselines`` to the new keyframe and
     the ``shared`` map points with its ``tracked`` ones) of its triangulation partners. Candidates
@@ -676,7 +676,7 @@ def triangulation_partners(
     return (wide + [i for i in candidates if i not in wide])[: settings.triangulation_neighbours]
 
 
-def covariance_inflation(shared_points: int, settings: KeyframeSettings) -> float:
+def covariance_inflation(shared_points: int, settings: KeyframeConfig) -> float:
     """Factor on the odometry sigmas of two keyframes that share ``shared_points`` map points."""
     shortfall = max(1.0, settings.covariance_reference_points / max(shared_points, 1))
     return float(min(shortfall**settings.covariance_exponent, settings.max_covariance_inflation))

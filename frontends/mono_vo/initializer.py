@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from frontends.mono_vo.config import InitSettings
+from frontends.mono_vo.config import InitConfig
 from frontends.mono_vo.features import Features
 from frontends.mono_vo.geometry import check_triangulated, fit_or_none, frame_seed, triangulate, usac_params
 from frontends.orb import match_descriptors
@@ -62,7 +62,7 @@ class _Reference:
 
 
 class Initializer:
-    def __init__(self, settings: InitSettings, K: np.ndarray, count_scale: float, seed: int, diagonal: float):
+    def __init__(self, settings: InitConfig, K: np.ndarray, count_scale: float, seed: int, diagonal: float):
         self.settings = settings
         self.K = K
         self.min_matches = max(20, round(settings.min_matches * count_scale))

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from frontends.mono_vo.config import BundleAdjustmentSettings
+from frontends.mono_vo.config import BundleAdjustmentConfig
 from frontends.mono_vo.features import octave_sigmas
 from frontends.mono_vo.geometry import invert, project
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -48,7 +48,7 @@ class BundleAdjustmentStats:
 
 
 def local_bundle_adjustment(
-    segment_map: SegmentMap, K: np.ndarray, octave_sigma: np.ndarray, settings: BundleAdjustmentSettings
+    segment_map: SegmentMap, K: np.ndarray, octave_sigma: np.ndarray, settings: BundleAdjustmentConfig
 ) -> BundleAdjustmentStats | None:
     keyframes = segment_map.keyframes
     window = keyframes[-settings.window :]

@@ -45,7 +45,7 @@ from typing import Literal
 import numpy as np
 from scipy.stats import binom
 
-from frontends.mono_vo.config import MaskingSettings
+from frontends.mono_vo.config import MaskingConfig
 from frontends.mono_vo.features import Features, octave_sigmas
 from frontends.mono_vo.geometry import (
     check_triangulated,
@@ -101,7 +101,7 @@ def motion_violations(
     K: np.ndarray,
     octave_sigma: np.ndarray,
     diagonal: float,
-    settings: MaskingSettings,
+    settings: MaskingConfig,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Match the keypoints ``query`` (indices into ``features``) to the partner's; returns the
     matched keypoint indices and, per match, whether it violates the camera motion."""
@@ -134,7 +134,7 @@ def judge_boxes(
     K: np.ndarray,
     octave_sigma: np.ndarray,
     diagonal: float,
-    settings: MaskingSettings,
+    settings: MaskingConfig,
     seed: int,
 ) -> tuple[list[BoxEvidence], float]:
     """Each box's evidence and verdict, and the background's share of violating matches (nan
@@ -213,7 +213,7 @@ def dynamic_keypoints(
     keypoints: np.ndarray,
     evidence: Sequence[BoxEvidence],
     may_keep: Sequence[bool],
-    settings: MaskingSettings,
+    settings: MaskingConfig,
 ) -> np.ndarray:
     """(N,) the keypoints to keep out of the map: those in moving boxes; then, smallest box first,
     while ``min_unmasked_share`` of them stays unmasked, those in boxes without a verdict and in

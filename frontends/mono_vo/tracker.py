@@ -43,7 +43,7 @@ import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.mono_vo.config import RelocalisationSettings, TrackingSettings
+from frontends.mono_vo.config import RelocalisationConfig, TrackingConfig
 from frontends.mono_vo.features import Features, consistent_rotation, match_in_radius, octave_sigmas
 from frontends.mono_vo.geometry import (
     fit_or_none,
@@ -72,8 +72,8 @@ class PoseEstimate:
 class Tracker:
     def __init__(
         self,
-        settings: TrackingSettings,
-        relocalisation: RelocalisationSettings,
+        settings: TrackingConfig,
+        relocalisation: RelocalisationConfig,
         K: np.ndarray,
         octave_sigma: np.ndarray,
         image_size: tuple[int, int],

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.mono_vo.config import KeyframeSettings
+from frontends.mono_vo.config import KeyframeConfig
 from frontends.mono_vo.features import best_two_per_group, octave_sigmas
 from frontends.mono_vo.geometry import (
     check_triangulated,
@@ -37,7 +37,7 @@ def triangulate_new_points(
     neighbour: KeyframeState,
     K: np.ndarray,
     octave_sigma: np.ndarray,
-    settings: KeyframeSettings,
+    settings: KeyframeConfig,
     max_error_sigmas: float,
     search_radius: float,
 ) -> int:
