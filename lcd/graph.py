@@ -4,14 +4,14 @@ Paper, section III-D: tier 1 connects the objects to each other (edge feature: n
 distance), tier 2 connects the ORB features inside a box to its object and gives them the object's
 label, tier 3 connects the features within ``x`` px outside the box edges to the object, unlabelled.
 
-Our interpretation of what the paper leaves open (measured in the README):
+Our interpretation of what the paper leaves open (measured in docs/paper-interpretation.md):
 - WL needs discrete labels. An object node is labelled by its class. A feature node is labelled by
   its visual word (the "vBoW" node feature; ``SymbioLCD2Config.word_level`` picks the tree level).
   Tier 2 "inherits the object's label" through its edge: WL's first iteration relabels a feature
   by (word, its anchor's class), so features of the same word in the same kind of object match
   from iteration 1 on. Putting the class (and the tier) into the feature's own label instead
   (``feature_label="tier"``) makes one missed detection change the labels of all the features in
-  the box, and measured worse with 30 % missed objects (README, "our interpretation").
+  the box, and measured worse with 30 % missed objects (docs/paper-interpretation.md).
 - WL ignores edge labels, so each object-object edge is split by a node labelled with the
   normalised distance bin (the standard edge-label-to-node transform); distances are divided by
   the mean distance between the objects of the image, which makes them scale invariant.

@@ -7,8 +7,8 @@ iterations, vertex-histogram base kernel, normalised). The temporal constraint t
 
     S(i, j) = k_WL(G_i, G_j) - T(i, j)
 
-Our interpretation where the paper leaves a choice open (effects measured in the README, "our
-interpretation", with the commands that measure them):
+Our interpretation where the paper leaves a choice open (effects, and the commands that measure
+them, in docs/paper-interpretation.md):
 
 - Temporal term. The paper writes T = alpha * ln(beta * (i - j)^2) and says it is "significant when
   frames are close and negligible when far apart"; the formula as printed does the opposite (it
