@@ -185,8 +185,9 @@ def render_markdown(sections: Sequence[Section] = SECTIONS) -> str:
         "do not edit: change the `#:` comments above the fields and regenerate. A test keeps it current.",
         "",
         "`symbio config [SECTION]` prints the same defaults as commented YAML that loads back as a",
-        "config file. Each meaning is the first sentence of the field's comment in the source, where",
-        "the rest of the explanation (and the measurements behind a value) is.",
+        "config file. Each meaning is the field's one-line comment in the source; the measurements",
+        "behind the defaults are in the experiment log (docs/2026-12-06-config-evidence.md and the",
+        "other dated notes in docs/).",
         "",
         "Sections: " + ", ".join(f"[`{s.name}`](#{s.name})" for s in sections) + ".",
     ]

@@ -58,13 +58,11 @@ class GraphConfig:
     distance_bins: int = 4
     #: Upper edge of the last distance bin, in units of the mean object-object distance.
     max_normalised_distance: float = 2.0
-    #: Keep features outside every box on a scene node (see the module docstring).
+    #: Experimental: False drops the scene node of the features outside every box (the paper's literal graph).
     background: bool = True
     #: Fewer objects than this: the keyframe is counted as object-poor (reported, not rejected).
     min_objects: int = 2
-    #: Feature nodes' own labels: "word" = the visual word only, whatever the tier (the object's
-    #: class reaches a feature through its edge at WL iteration 1); "tier" = word + tier + the class
-    #: of the object for tier 2 (a missed detection then changes the feature's own label).
+    #: Experimental: feature label: word, or tier (word + tier + class) (docs/2026-12-06-config-evidence.md)
     feature_label: Literal["word", "tier"] = "word"
 
 

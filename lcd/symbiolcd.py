@@ -99,12 +99,15 @@ class SymbioLCDConfig:
     shortlist: int = 10
     #: Keyframes with fewer ORB features neither query nor get matched.
     min_features: int = 20
+    #: Trees in the Random Forest.
     n_estimators: int = 100
     #: Depth limit of each tree; 0 = unlimited.
     max_depth: int = 8
+    #: Fewest training rows in a leaf of each tree.
     min_samples_leaf: int = 5
     #: Constrain the forest to ``MONOTONIC`` (see the module docstring).
     monotonic: bool = True
+    #: The object filter applied before the objects are compared (``FilterConfig``).
     objects: FilterConfig = field(default_factory=FilterConfig)
     #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
     vocabulary: str = ""

@@ -70,33 +70,37 @@ from lcd.wl import GrakelWL, WLKernel
 
 @dataclass(frozen=True)
 class SymbioLCD2Config:
+    #: The keyframe graph: tiers, object margin, distance bins (``GraphConfig``).
     graph: GraphConfig = field(default_factory=GraphConfig)
+    #: The object filter applied before the graph (``FilterConfig``).
     objects: FilterConfig = field(default_factory=FilterConfig)
     #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
     vocabulary: str = ""
     #: The online vocabulary's settings (with ``vocabulary: online``).
     online: OnlineVocabularyConfig = field(default_factory=OnlineVocabularyConfig)
-    #: Tree level whose node ids label feature nodes (level 2 of a k=10 tree: 100 words); the
-    #: online vocabulary is flat and ignores it.
+    #: Vocabulary tree level whose node ids label feature nodes (the online vocabulary ignores it).
     word_level: int = 5
     #: WL iterations h (the paper's h = 50; see the module docstring).
     iterations: int = 10
+    #: Weight alpha of the temporal penalty T(i, j) (the paper's 2).
     alpha: float = 2.0
+    #: Scale beta of the temporal penalty (per ``temporal_unit`` squared; the paper's 0.3 per keyframe).
     beta: float = 1.0
+    #: Experimental: T(i, j): vanishing = alpha ln(1 + 1/(beta d^2)); paper = alpha ln(beta d^2) as printed.
     temporal_form: Literal["vanishing", "paper"] = "vanishing"
-    #: What i - j counts: seconds between the keyframes' timestamps, or keyframes.
+    #: Experimental: what i - j counts: seconds between the keyframes' timestamps, or keyframes (the paper's).
     temporal_unit: Literal["seconds", "keyframes"] = "seconds"
     #: The most recent keyframes never proposed as loops.
     temporal_window: int = 10
-    #: Keyframes with fewer ORB features are stored but neither query nor get matched: their
-    #: graphs are all alike (a scene node and its objects), so the kernel would call them equal.
+    #: Keyframes with fewer ORB features are stored but neither query nor get matched (alike graphs).
     min_features: int = 20
+    #: A candidate whose score S = k_WL - T reaches this counts as a loop.
     threshold: float = 0.035
     #: Candidates returned per query, best first.
     max_candidates: int = 5
     #: "ours" = incremental exact WL; "grakel" = grakel refitted (slow; the test oracle).
     wl_backend: Literal["ours", "grakel"] = "ours"
-    #: IDF weight of each WL label, by its node's input label (``lcd.wl``): 0 off, 1 idf, 2 idf^2.
+    #: Experimental: IDF weight of each WL label (``lcd.wl``): 0 off, 1 idf, 2 idf^2.
     idf_power: int = 0
 
     def __post_init__(self) -> None:

@@ -86,6 +86,7 @@ class VbowConfig:
     temporal_window: int = 20
     #: Keyframes less than this many seconds older than the query are never candidates.
     time_window: float = 0.0
+    #: Experimental: none = raw L1 score; previous = over the query's score vs its previous keyframes.
     normalise: Normalise = "none"
     #: ``previous``: the reference is the minimum score against the last this many keyframes.
     normalise_neighbours: int = 1

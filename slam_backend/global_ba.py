@@ -47,22 +47,17 @@ log = logging.getLogger(__name__)
 class GlobalBundleAdjustmentConfig:
     #: Run it when the stream ends, if any loop was accepted.
     enabled: bool = True
-    #: Keypoint position noise (px) at the finest detection scale (times the keyframe's
-    #: ``keypoint_sigmas`` where it has them) and the Huber kernel's threshold in sigmas (chi2 95 %,
-    #: 2 dof).
+    #: Keypoint position noise (px) at the finest detection scale (times the keyframe's ``keypoint_sigmas``).
     pixel_sigma: float = 1.0
     #: Huber kernel threshold in sigmas (chi2 95 %, 2 dof).
     huber_k: float = 2.447
-    #: Levenberg-Marquardt stops after this many iterations or when one gains less than this (it
-    #: ends in 2-4 iterations on the benchmark scenes, where 100 at 1e-6 reach the same error).
+    #: Levenberg-Marquardt iterations at most (docs/2026-12-06-config-evidence.md)
     iterations: int = 10
     #: Levenberg-Marquardt stops when an iteration gains less than this share.
     relative_error_tolerance: float = 1e-3
     #: Points observed by fewer keyframes do not constrain poses.
     min_observations: int = 2
-    #: Every frame the frontend posed from map points is posed again against the adjusted points
-    #: (``repose_frame``) when at least ``frame_min_inliers`` of them fit within
-    #: ``frame_max_error_px``; otherwise it follows its keyframes.
+    #: Re-pose every frame posed from map points against the adjusted points (else it follows its keyframes).
     repose_frames: bool = True
     #: Observations a re-posed frame needs within ``frame_max_error_px``.
     frame_min_inliers: int = 20
@@ -70,10 +65,7 @@ class GlobalBundleAdjustmentConfig:
     frame_max_error_px: float = 4.0
     #: Observations within this many times ``frame_max_error_px`` start the refinement.
     frame_search_factor: float = 3.0
-    #: After a first adjustment every point is sought in every keyframe that does not observe it
-    #: yet (the keypoint within this radius, px, whose ORB descriptor is within
-    #: ``fuse_max_hamming`` bits: ORB-SLAM's 50) and the map adjusted again with those observations;
-    #: 0 turns it off.
+    #: Radius (px) of the search for points a keyframe does not observe yet, after a first adjustment; 0: off.
     fuse_radius_px: float = 4.0
     #: Hamming limit (bits) of a fused observation (ORB-SLAM's TH_LOW 50).
     fuse_max_hamming: int = 50

@@ -104,83 +104,51 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopClosingConfig:
-    #: Candidates (best first) verified per query keyframe ...
+    #: Candidates (best first) verified per query keyframe.
     max_verifications: int = 2
-    #: ... among those scoring at least this fraction of the detector's own threshold. A detector's
-    #: threshold is set for precision on its own; here geometric verification and the backend's
-    #: outlier rejection guard precision, so weaker candidates are worth a check (a verification
-    #: costs ~40 ms; at most ``max_verifications`` per keyframe).
+    #: Verify candidates scoring this share of the detector's threshold (docs/2026-12-06-config-evidence.md)
     proposal_ratio: float = 0.5
-    #: Sigmas of the step that links a new map segment to the previous keyframe: rotation (rad),
-    #: translation (map units) and log-scale. Loose enough that any loop overrides it.
+    #: Rotation sigma (rad) of the loose step linking a new map segment to the previous keyframe.
     segment_link_rotation_sigma: float = 1.0
     #: Translation sigma (map units) of the segment link.
     segment_link_translation_sigma: float = 100.0
     #: Log-scale sigma of the segment link.
     segment_link_log_scale_sigma: float = 1.0
-    #: Seconds of each segment's keyframes (the old one's last, the new one's first, as far as
-    #: received) whose median speed sets the link's scale and length; 0 links by identity instead.
+    #: Seconds of keyframes whose median speed sets the segment link's scale and length; 0: identity.
     segment_link_speed_window_s: float = 2.0
-    #: ... unless that changes the new map's scale by more than this factor against the identity
-    #: link. Each initialisation sets its map's unit to a baseline that gives ~1 deg of parallax,
-    #: so two maps of one scene start within a small factor of each other; a larger change means
-    #: the old map's scale had run away before it was lost (synthetic out-and-back 1 and figure8
-    #: 5: 19x and 29x, their maps collapsed; loop 2 and loop 6, healthy until the loss: 3.1x and
-    #: 2.4x). Then the new map keeps its initialisation's scale.
+    #: Largest scale change of the new map by the speed link (docs/2026-12-06-config-evidence.md)
     segment_link_max_scale_change: float = 5.0
-    #: Odometry sigmas for keyframes that come without a covariance (e.g. the replay frontend):
-    #: rotation (rad), translation (fraction of the step length) and log-scale.
+    #: Odometry rotation sigma (rad) of keyframes without a covariance (e.g. the replay frontend).
     default_rotation_sigma: float = 0.005
     #: Default odometry translation sigma (fraction of the step length).
     default_translation_sigma: float = 0.02
     #: Default odometry log-scale sigma.
     default_log_scale_sigma: float = 0.01
-    #: Added to every odometry covariance (as variances): rotation (rad), translation (fraction of
-    #: the keyframe's median map-point depth, the map's natural unit) and log-scale. A frontend's
-    #: sigmas relative to the step length vanish when the camera barely moves (or the monocular
-    #: scale shrinks), which makes the information matrix ill-conditioned and iSAM2's
-    #: factorisation fail; the floors keep every step a few orders of magnitude from singular.
+    #: Rotation sigma (rad) added to every odometry covariance (docs/2026-12-06-config-evidence.md)
     floor_rotation_sigma: float = 1e-4
     #: Translation floor (fraction of the keyframe's median map-point depth).
     floor_translation_sigma: float = 1e-3
     #: Log-scale floor.
     floor_log_scale_sigma: float = 1e-3
-    #: Wall-clock budget of one verification (s; a verification costs ~40 ms). The verifier runs on
-    #: a worker thread; past the budget the candidate is rejected with reason "timeout ..." and the
-    #: run goes on. While a timed-out call is still running, the next candidate waits for it at most
-    #: one budget (the verifier is never called concurrently), else it is rejected the same way.
+    #: Wall-clock budget (s) of one verification; past it: rejected (docs/2026-12-06-config-evidence.md)
     verify_timeout_s: float = 30.0
-    #: Hand the backend's estimates to a frontend that can move its map (``CorrectableFrontend``)
-    #: after every accepted loop, so that tracking continues in the corrected map.
+    #: Hand the backend's estimates to a ``CorrectableFrontend`` after every accepted loop.
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
-    #: A loop into another map segment (not yet joined to the query's by an accepted loop) goes to
-    #: the backend only together with ``bridge_support`` - 1 earlier held loops between the same two
-    #: segments that pass PCM's pairwise test with it (chi2 at ``bridge_confidence``; the cycle runs
-    #: through each segment's own odometry, never the loose link). Across the loose link nothing
-    #: else can refute a loop: one verified false loop there was accepted and moved a whole segment
-    #: (fault injection, demo scene: ATE 0.225 -> 0.561 m). 1: the first such loop goes in at once.
+    #: Consistent loops needed to join two map segments; 1: the first (docs/2026-12-06-config-evidence.md)
     bridge_support: int = 2
     #: Confidence of the chi2 test between loops that bridge two segments.
     bridge_confidence: float = 0.999
-    #: A candidate whose images agree but whose map is too thin there for a constraint
-    #: (``Verification.thin_map``) is deferred and re-verified after each of the next
-    #: ``defer_retries`` settled keyframes of its query's segment (see "Deferred loops"); 0: rejected.
+    #: Settled keyframes after which a thin-map candidate is re-verified (see "Deferred loops"); 0: rejected.
     defer_retries: int = 3
-    #: A retry poses the newly settled keyframe against the match only if it shares this many map
-    #: points with the deferred query (or half of the query's, if fewer): it still sees the place.
-    #: Neighbouring mono-vo keyframes share 34-314 (gardens_point_day).
+    #: Map points a retry keyframe must share with the deferred query (docs/2026-12-06-config-evidence.md)
     defer_min_shared_points: int = 15
-    #: Such a candidate between two map segments that nothing joins yet is first tried as a join
-    #: from its two-view geometry and each map's own points (``slam_backend.two_view_join``; needs
-    #: the camera), which then waits for support like any loop between them (``bridge_support``).
+    #: Joining unjoined map segments from a thin-map loop's two-view geometry (``TwoViewJoinConfig``).
     two_view_join: TwoViewJoinConfig = field(default_factory=TwoViewJoinConfig)
-    #: Newer keyframes a keyframe waits for before its odometry step is read and it is searched
-    #: for loops (see "Settling"); None: the frontend's ``keyframes_in_flux`` (0 if it has none).
+    #: Newer keyframes a keyframe waits for before it is used; None: the frontend's ``keyframes_in_flux``.
     settle_keyframes: int | None = None
-    #: Full bundle adjustment over every keyframe and map point when the stream ends, if a loop was
-    #: accepted (``slam_backend.global_ba``; needs the camera and keyframes with map point ids).
+    #: Full bundle adjustment at the end of the stream if a loop was accepted (``slam_backend.global_ba``).
     global_ba: GlobalBundleAdjustmentConfig = field(default_factory=GlobalBundleAdjustmentConfig)
 
     def __post_init__(self) -> None:

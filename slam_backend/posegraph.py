@@ -88,10 +88,7 @@ class BackendConfig:
     isam_relinearize_skip: int = 10
     #: iSAM2 update() calls per loop event (a large correction needs more than one).
     loop_update_iterations: int = 2
-    #: iSAM2's linear solver. QR is numerically robust where Cholesky reports an "indeterminate
-    #: linear system" on valid but badly scaled monocular chains (a map whose scale shrank 1000x
-    #: next to keyframes tens of units away); it costs ~25 % more per loop event (4.4 vs 3.5 ms on a
-    #: 1500-keyframe Sim(3) chain).
+    #: iSAM2's linear solver: QR (robust) or CHOLESKY (QR: ~25 % slower) (docs/2026-12-06-config-evidence.md)
     factorization: Literal["QR", "CHOLESKY"] = "QR"
 
     def __post_init__(self) -> None:

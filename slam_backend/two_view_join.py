@@ -33,19 +33,15 @@ from frontends.types import CameraIntrinsics, Keyframe
 class TwoViewJoinConfig:
     #: Join map segments with thin-map loops at all (False: such loops are only deferred).
     enabled: bool = True
-    #: Median triangulation angle of the inliers (deg) below which the translation direction of the
-    #: essential matrix is too weak to place one map in the other (ORB-SLAM initialises from 1 deg).
+    #: Median triangulation angle (deg) of the inliers needed to join (ORB-SLAM initialises from 1 deg).
     min_triangulation_angle_deg: float = 1.0
     #: Map points each keyframe must hold among the inliers (its own side of the scale).
     min_points: int = 10
-    #: Share of each side's depth ratios (map point / unit-baseline triangulation) that must lie
-    #: within ``max_ratio_error`` of their median: the map agrees with the two views up to scale.
+    #: Share of each side's depth ratios that must lie within ``max_ratio_error`` of their median.
     min_consistent_ratio: float = 0.8
     #: Largest relative deviation of a depth ratio from their median.
     max_ratio_error: float = 0.25
-    #: Standard deviations of the constraint: rotation (rad; consistent joins of one segment pair
-    #: differ by ~1 deg), translation (fraction of its length) with a floor (fraction of the match's
-    #: median point depth), and the floor of the log-scale's (its own from the ratios' spread).
+    #: Rotation sigma (rad) of the join constraint (docs/2026-12-06-config-evidence.md)
     rotation_sigma: float = 0.02
     #: Translation sigma (fraction of the translation's length).
     translation_sigma: float = 0.25

@@ -100,25 +100,17 @@ class VerifierConfig:
     min_inliers: int = 30
     #: Share of the matches that must be epipolar inliers.
     min_inlier_ratio: float = 0.25
-    #: Epipolar inliers with a map point in both keyframes needed for the Sim(3) (and Sim(3)
-    #: inliers needed to accept it). 20 let two false loops through on a collapsed map (synthetic
-    #: out-and-back seed 1: 21 and 22 inliers, 140 deg off, consistent with each other).
+    #: Epipolar inliers with map points in both keyframes for the Sim(3) (docs/2026-12-06-config-evidence.md)
     min_points: int = 30
-    #: Sim(3) RANSAC threshold as a fraction of the match's median point depth, and the share of
-    #: the points with a 3D point in both keyframes that must fit it. Two consistent maps align
-    #: almost whole (right loops on the synthetic scenes: median 0.96); where a third does not fit,
-    #: one map is distorted and the Sim(3) can be wrong: 0.5 accepted a loop 9.0 deg off (held-out
-    #: out-and-back 13, 30 of 45 points, 0.67). With 0.8, 42 pipeline scenes (seeds 0-13): 0 false
-    #: of 963 accepted, 35 at the ATE target (36 with 0.5, figure8 7 0.44 -> 0.72).
+    #: Sim(3) RANSAC threshold (fraction of the median point depth) (docs/2026-12-06-config-evidence.md)
     max_point_error: float = 0.03
     #: Share of the points with a 3D point in both keyframes that must fit the Sim(3).
     min_point_inlier_ratio: float = 0.8
     #: PnP RANSAC threshold in pixels.
     max_reprojection_error_px: float = 4.0
-    #: Floors of the constraint's standard deviations: the estimates' own spread ignores systematic
-    #: errors (map-point depth, calibration), and an overconfident loop bends the whole graph.
+    #: Floor of the constraint's rotation sigma (rad): the estimates' spread ignores systematic errors.
     min_rotation_sigma_rad: float = 0.003
-    #: As a fraction of the match's median point depth.
+    #: Floor of the constraint's translation sigma (fraction of the match's median point depth).
     min_translation_sigma: float = 0.01
     #: Floor of the log-scale's standard deviation.
     min_log_scale_sigma: float = 0.02

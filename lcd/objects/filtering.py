@@ -58,7 +58,9 @@ MOVABLE_LABELS: tuple[str, ...] = (
 
 @dataclass(frozen=True)
 class FilterConfig:
+    #: Objects scoring below this are dropped (the detectors' default threshold).
     min_score: float = 0.3
+    #: Classes dropped as movable: COCO's people, vehicles and animals (airplanes are kept).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
     #: Largest box area as a fraction of the image area.
     max_area_fraction: float = 0.5

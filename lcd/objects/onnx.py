@@ -71,13 +71,17 @@ SSD_BOX_SCALES = np.array([10.0, 10.0, 5.0, 5.0])
 class OnnxConfig:
     #: The .onnx file (required).
     model: str = ""
+    #: How the model is fed and read: ssd-raw, maskrcnn or yolo (see the module docstring).
     layout: Layout = "ssd-raw"
     #: Network input side (pixels); 0: from the model's input shape (maskrcnn: 800, the shorter side).
     input_size: int = 0
     #: ``coco90``, ``coco80``, ``coco80+1`` or a names file; empty: the layout's default.
     classes: str = ""
+    #: Boxes must score above this to be reported.
     score_threshold: float = DEFAULT_SCORE_THRESHOLD
+    #: IoU above which the lower-scored box of a class is suppressed (maskrcnn runs its own NMS).
     nms_threshold: float = SSD_NMS_THRESHOLD
+    #: Most boxes reported per image, best first.
     max_detections: int = SSD_MAX_DETECTIONS
     #: Mask R-CNN: mask probability above which a pixel belongs to the object.
     mask_threshold: float = 0.5

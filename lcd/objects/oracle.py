@@ -42,11 +42,15 @@ OBJECTS_FILE = "gt_objects.jsonl"
 class OracleConfig:
     #: The scene's gt_objects.jsonl; empty: ``<frame.path>/../../gt_objects.jsonl``.
     objects_file: str = ""
+    #: Probability that an object is not reported.
     miss_rate: float = 0.0
+    #: Probability that a static object is reported as another static label of the scene.
     flip_rate: float = 0.0
     #: Standard deviation of the box noise (pixels).
     box_jitter: float = 0.0
+    #: Objects with a smaller visible fraction than this are not reported.
     min_visible_fraction: float = 0.0
+    #: Seed of the degradations, mixed with the frame index.
     seed: int = 0
 
     def __post_init__(self) -> None:

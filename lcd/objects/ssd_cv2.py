@@ -61,9 +61,11 @@ DEFAULT_SCORE_THRESHOLD = 0.3
 
 @dataclass(frozen=True)
 class SsdConfig:
+    #: Boxes must score above this to be reported (the TF-OD-API demos use 0.5).
     score_threshold: float = DEFAULT_SCORE_THRESHOLD
     #: IoU above which the lower-scored box of a class is suppressed.
     nms_threshold: float = SSD_NMS_THRESHOLD
+    #: Most boxes reported per image, best first (the model's 100).
     max_detections: int = SSD_MAX_DETECTIONS
     #: OpenCV threads; 0 keeps OpenCV's setting. ``cv2.setNumThreads`` is process-wide.
     threads: int = 0
