@@ -46,15 +46,15 @@ format: $(VENV)/.installed-dev
 
 # Every speed and accuracy benchmark (about 40 minutes on 2 cores; each prints its ratios and tables).
 bench: $(VENV)/.installed-dev
-	$(PY) eval/bench_synth.py
-	$(PY) -m eval.bench_vbow
-	$(PY) eval/bench_wl.py --keyframes 2000
-	$(PY) -m eval.bench_objects
-	$(PY) -m eval.bench_backend
-	$(PY) -m eval.bench_lcd
-	$(PY) eval/bench_frontend.py
-	$(PY) -m eval.bench_pipeline
-	$(PY) eval/bench_sweep.py
+	$(PY) -m eval.bench.synth
+	$(PY) -m eval.bench.vbow
+	$(PY) -m eval.bench.wl --keyframes 2000
+	$(PY) -m eval.bench.objects
+	$(PY) -m eval.bench.backend
+	$(PY) -m eval.bench.lcd
+	$(PY) -m eval.bench.frontend
+	$(PY) -m eval.bench.pipeline
+	$(PY) -m eval.bench.sweep
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .mypy_cache .ruff_cache

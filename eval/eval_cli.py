@@ -1,11 +1,11 @@
-"""``symbio eval``: its subcommands ``lcd`` (``eval.lcd_eval``), ``table`` and ``sweep`` (``eval.table``)."""
+"""``symbio eval``: ``lcd`` (``eval.lcd_eval``), ``table`` and ``sweep`` (``eval.paper.table``)."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from eval.lcd_eval import add_lcd_parser
-from eval.table import add_table_parsers
+from eval.paper.table import add_table_parsers
 
 
 def add_parser(subparsers: Any) -> None:

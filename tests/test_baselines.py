@@ -7,8 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.baselines import BASELINE_NAMES, TrainSplit, build_baseline, scaled_synth_config, training_table
 from eval.lcd_eval import figures_of, run_lcd
+from eval.paper.baselines import (
+    BASELINE_NAMES,
+    TrainSplit,
+    build_baseline,
+    scaled_synth_config,
+    training_table,
+)
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
 from frontends.orb import OrbConfig

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from eval.bench_odometry import compare, main, parse_seeds, summarise
+from eval.bench.odometry import compare, main, parse_seeds, summarise
 from frontends.errors import ConfigError
 
 

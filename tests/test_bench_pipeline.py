@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from eval.bench_pipeline import main
+from eval.bench.pipeline import main
 
 
 def test_a_bad_setting_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.bench_relocalisation import Blackout, Outcome, main, summarise
+from eval.bench.relocalisation import Blackout, Outcome, main, summarise
 from frontends.types import Frame
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from eval.components import load_components
-from eval.table import TableConfig, load_experiment_config
+from eval.paper.table import TableConfig, load_experiment_config
 from frontends.config import Override, config_to_dict, load_config
 from frontends.datasets.calib import read_intrinsics
 from frontends.errors import CalibrationError, ConfigError

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from eval.cli import main
-from eval.stats import effect, rank_detectors
-from eval.sweep import ClusterOptions, ResultStore
-from eval.table import (
+from eval.paper.stats import effect, rank_detectors
+from eval.paper.sweep import ClusterOptions, ResultStore
+from eval.paper.table import (
     SweepConfig,
     TableConfig,
     TableRun,

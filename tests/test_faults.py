@@ -140,6 +140,7 @@ def test_undecodable_images_are_skipped_counted_and_named(
     assert len(posed & set(stamps.round(6))) == figures["frames_tracked"]
 
 
+@pytest.mark.slow
 def test_missing_images_are_skipped_counted_and_named(small_loop_scene: Path, tmp_path: Path) -> None:
     scene = tmp_path / "scene"  # the scene's rgb.txt, listing absolute paths, two of them absent
     scene.mkdir()
@@ -181,6 +182,7 @@ def test_strict_makes_an_undecodable_image_an_error_after_writing_what_exists(
     assert figures["interrupted"] is True and figures["frames"] == figures["frames_tracked"] > 0
 
 
+@pytest.mark.slow
 def test_duplicate_and_backwards_timestamps_are_skipped_and_counted(
     small_loop_scene: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -359,8 +361,8 @@ def test_verified_false_loops_are_rejected_by_the_backend() -> None:
     the odometry's."""
     from test_pipeline import RenderedObjects, ate, drifting_keyframes
 
+    from eval.bench.synth_keyframes import scene_camera
     from eval.inject import FaultyLoopDetector, FaultyVerifier, Injection
-    from eval.synth_keyframes import scene_camera
     from frontends.synth.render import SceneRenderer
     from frontends.synth.world import SynthConfig
     from frontends.types import Frame

@@ -36,7 +36,7 @@ from eval import checkpoint
 from eval.cli import main as symbio_main
 from eval.components import load_components
 from eval.inject import KINDS, InjectionSpec
-from eval.table import TableConfig, load_experiment_config
+from eval.paper.table import TableConfig, load_experiment_config
 from frontends import safe_yaml
 from frontends.config import load_config
 from frontends.datasets import open_dataset

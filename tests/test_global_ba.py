@@ -253,7 +253,8 @@ def _with_coarse_keypoints(keyframes: list[Keyframe], seed: int, sigmas: bool) -
     return result
 
 
-@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.slow
 def test_keypoint_sigmas_weigh_coarse_keypoints_less(seed: int) -> None:
     """Keypoints found on coarse pyramid levels are located less precisely; weighing them by their
     sigma (``Keyframe.keypoint_sigmas``) gives a better map than trusting every pixel alike. Run to

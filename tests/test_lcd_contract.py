@@ -141,6 +141,7 @@ def test_eval_lcd_cli(small_loop_scene: Path, tmp_path: Path, capsys: pytest.Cap
     assert "recall_at_100p" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_eval_lcd_compares_detectors_on_one_pass(
     small_loop_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

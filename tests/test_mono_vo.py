@@ -1,7 +1,7 @@
 """The ``mono-vo`` frontend: initialisation, tracking accuracy, failure modes, determinism.
 
 Synthetic tests use the session's 320x240 loop scene (fast); the KITTI 06 clip test needs the
-shared data. Speed is measured by ``eval/bench_frontend.py``, never here.
+shared data. Speed is measured by ``eval/bench/frontend.py``, never here.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from eval.bench_frontend import evaluate, oracle_masks, synthetic_scene
+from eval.bench.frontend import evaluate, oracle_masks
+from eval.bench.scenes import scene_frames
 from frontends.base import FRONTENDS, Frontend, TrackResult, with_lookahead
 from frontends.config import load_config
 from frontends.datasets import open_dataset
@@ -414,6 +415,7 @@ def test_wrong_intrinsics_warn(
     assert any("intrinsics look wrong" in record.getMessage() for record in caplog.records)
 
 
+@pytest.mark.slow
 def test_correct_intrinsics_do_not_warn(
     loop_frames: tuple[CameraIntrinsics, list[Frame]], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -615,7 +617,7 @@ def test_holding_the_start_orientation_keeps_a_wall_facing_turning_start() -> No
     the second's distance: ``ba.start_orientation_prior=false``) local BA let the first pair turn:
     17 % of the path after 120 frames, the map shrinking. With the second's orientation held too
     (the default): 0.6 %."""
-    camera, frames, movable = synthetic_scene("figure8", 8, 600, rendered_frames=120)
+    camera, frames, movable = scene_frames("figure8", 8, 600, rendered_frames=120)
     masks = oracle_masks(movable, 0.3, 8)
     held = evaluate(camera, frames, [], masks)
     assert held["segments"] == 1 and held["posed_frames"] == 120

@@ -1,7 +1,7 @@
 """Loop closing end to end: detector -> verifier -> Sim(3) pose graph, on rendered keyframes.
 
 The keyframes come straight from the synthetic renderer (every 6th frame of a 20 s 640x480 scene),
-with exact map points from its depth buffer (``eval.synth_keyframes``) and GT objects with 30 %
+with exact map points from its depth buffer (``eval.bench.synth_keyframes``) and GT objects with 30 %
 misses, and poses that drift like monocular odometry (a slow scale shrink and a yaw bias). So the
 detector, the pycolmap verifier and the GTSAM backend run on realistic images and geometry, while
 the trajectory error before loop closing is known and large. The full ``symbio run`` with the
@@ -24,11 +24,11 @@ from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 from scipy.spatial.transform import Rotation
 
+from eval.bench.synth_keyframes import keyframe_with_depth, scene_camera
 from eval.cli import main as symbio_main
 from eval.components import load_components
 from eval.demo import synthetic_components
 from eval.run import LOOPS_FILE, METRICS_FILE, ODOMETRY_FILE, TRAJECTORY_FILE, loop_truth
-from eval.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.base import TrackResult
 from frontends.synth.render import RenderedFrame, SceneRenderer
 from frontends.synth.world import SynthConfig
@@ -306,7 +306,7 @@ def test_symbio_demo_closes_its_loops(demo_run: Path) -> None:
 def test_the_global_bundle_adjustment_ends_a_run_with_loops(demo_run: Path, tmp_path: Path) -> None:
     """Accepted loops end in a global bundle adjustment that lowers the reprojection error and
     re-poses the tracked frames, and ``--set`` turns it off. (Whether it improves the trajectory
-    is measured by ``eval/bench_pipeline.py`` and ``tests/test_global_ba.py``.) The demo ran with
+    is measured by ``eval/bench/pipeline.py`` and ``tests/test_global_ba.py``.) The demo ran with
     it; the same scene and components run again without it."""
     out = tmp_path / "graph_only"
     argv = ["run", str(demo_run / "scene"), "--no-progress", "--out", str(out)]
@@ -327,6 +327,7 @@ def test_the_global_bundle_adjustment_ends_a_run_with_loops(demo_run: Path, tmp_
     assert adjusted["ate_rmse_after_all"] != graph_only["ate_rmse_after_all"]
 
 
+@pytest.mark.slow
 def test_symbio_run_viewer_writes_a_recording(small_loop_scene: Path, tmp_path: Path) -> None:
     pytest.importorskip("rerun")
     out = tmp_path / "run"

@@ -1,4 +1,4 @@
-"""Every command README.md shows must work as written.
+"""Every command README.md and the notes in docs/*.md show must work as written.
 
 * ``symbio ...`` in fenced ``bash``/``sh``/``shell``/``console`` blocks: the full argv parses with
   ``eval.cli.build_parser()`` (argparse only: no handler runs, no file is read or written; paths in
@@ -7,12 +7,13 @@
   fragments, they may leave out required arguments, nothing else.
 * ``python -m PACKAGE.MODULE ...`` / ``python path/to/script.py ...`` of this project (fenced or
   inline): the module or script exists, ``--help`` exits 0 and lists every option the command uses.
-  Names with an all-capitals placeholder (``eval.bench_NAME``) are not commands and are skipped.
+  Names with an all-capitals placeholder (``eval.bench.NAME``) are not commands and are skipped.
 * ``make TARGET ...``: every target is a rule of the Makefile.
 
 Fenced lines may end in ``# comments`` and continue with ``\\``; ``console`` blocks mark commands
-with a ``$ `` prompt. Tests are parametrised by README line, so a failure names the line. The tests
-at the end feed broken README texts to the same checks and expect them to fail.
+with a ``$ `` prompt. Tests are parametrised by file and line (``README.md:12:symbio demo ...``,
+``docs/slam-runs.md:872:symbio run ...``), so a failure names both. The tests at the end feed broken
+README texts to the same checks and expect them to fail.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import contextlib
 import functools
 import importlib.util
 import io
+import json
 import re
 import shlex
 import subprocess
@@ -36,6 +38,7 @@ from eval.cli import build_parser
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 README = REPO_ROOT / "README.md"
+DOCS = REPO_ROOT / "docs"
 MAKEFILE = REPO_ROOT / "Makefile"
 
 SHELL_LANGUAGES = frozenset({"bash", "sh", "shell", "console", "zsh"})
@@ -46,12 +49,12 @@ HELP_TIMEOUT_S = 180
 
 
 class ReadmeCommandError(AssertionError):
-    """A README command that does not work as written."""
+    """A README (or docs/) command that does not work as written."""
 
 
 @dataclass(frozen=True)
 class ReadmeCommand:
-    #: 1-based README line where the command starts.
+    #: 1-based line of ``source`` where the command starts.
     line: int
     #: The command as written (continuation lines joined, comments kept).
     text: str
@@ -59,6 +62,8 @@ class ReadmeCommand:
     argv: tuple[str, ...]
     #: From a fenced block (a complete command), or an inline code span (may be a fragment).
     fenced: bool
+    #: The markdown file it comes from, relative to the repository ("README", "docs/slam-runs.md").
+    source: str = "README"
 
     @property
     def program(self) -> str:
@@ -73,7 +78,7 @@ class ReadmeCommand:
 
     def fail(self, problem: str) -> ReadmeCommandError:
         kind = "fenced block" if self.fenced else "inline code"
-        return ReadmeCommandError(f"README line {self.line} ({kind}) `{self.text}`: {problem}")
+        return ReadmeCommandError(f"{self.source} line {self.line} ({kind}) `{self.text}`: {problem}")
 
 
 # ------------------------------------------------------------------------------------ extraction
@@ -158,8 +163,8 @@ def inline_code_spans(markdown: str) -> Iterator[tuple[int, str]]:
         yield text.count("\n", 0, span.start()) + 1, " ".join(span.group(2).split())
 
 
-def readme_commands(markdown: str) -> list[ReadmeCommand]:
-    """Every ``symbio``, project ``python`` and ``make`` command in ``markdown``."""
+def readme_commands(markdown: str, source: str = "README") -> list[ReadmeCommand]:
+    """Every ``symbio``, project ``python`` and ``make`` command in ``markdown`` (the file ``source``)."""
     found: list[ReadmeCommand] = []
     sources = [(line, text, True) for line, text in fenced_shell_lines(markdown)]
     sources += [(line, text, False) for line, text in inline_code_spans(markdown)]
@@ -168,10 +173,11 @@ def readme_commands(markdown: str) -> list[ReadmeCommand]:
             commands = simple_commands(text)
         except ValueError as exc:  # unbalanced quotes
             if fenced:
-                raise ReadmeCommand(line, text, ("?",), fenced).fail(f"not a shell command ({exc})") from None
+                broken = ReadmeCommand(line, text, ("?",), fenced, source)
+                raise broken.fail(f"not a shell command ({exc})") from None
             continue
         for argv in commands:
-            command = ReadmeCommand(line, text, tuple(argv), fenced)
+            command = ReadmeCommand(line, text, tuple(argv), fenced, source)
             wanted = {
                 "symbio": fenced or any(word.startswith("-") for word in argv[1:]),
                 "python": python_target(command) is not None,
@@ -246,8 +252,8 @@ def check_symbio(command: ReadmeCommand) -> None:
 
 
 def python_target(command: ReadmeCommand) -> tuple[str, str] | None:
-    """("module", "eval.bench_lcd") or ("script", "eval/bench_synth.py") for commands of this
-    project; None for other python commands and for placeholders (``eval.bench_NAME``)."""
+    """("module", "eval.bench.lcd") or ("script", "eval/bench/synth.py") for commands of this
+    project; None for other python commands and for placeholders (``eval.bench.NAME``)."""
     argv = command.argv
     if len(argv) >= 3 and argv[1] == "-m":
         target = ("module", argv[2]) if argv[2].split(".")[0] in PROJECT_PACKAGES else None
@@ -260,9 +266,53 @@ def python_target(command: ReadmeCommand) -> tuple[str, str] | None:
     return target
 
 
+# Runs ``--help`` of many modules and scripts in one interpreter, so the heavy imports they share
+# (gtsam, OpenCV, pycolmap) are paid once: prints one JSON object {"kind:target": [exit code, output]}.
+HELP_BATCH = """
+import contextlib, io, json, runpy, sys, warnings
+warnings.filterwarnings("ignore", "'.*' found in sys.modules", RuntimeWarning)  # run twice: harmless
+results = {}
+for kind, target in json.loads(sys.argv[1]):
+    output, code = io.StringIO(), -2
+    sys.argv = [target, "--help"]
+    try:
+        with contextlib.redirect_stdout(output), contextlib.redirect_stderr(output):
+            if kind == "module":
+                runpy.run_module(target, run_name="__main__", alter_sys=True)
+            else:
+                runpy.run_path(target, run_name="__main__")
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except BaseException:
+        pass
+    results[kind + ":" + target] = [code, output.getvalue()]
+sys.stdout = sys.__stdout__
+print(json.dumps(results))
+"""
+
+
+@functools.cache
+def batched_python_help() -> dict[str, tuple[int, str]]:
+    """``--help`` of every python command of the README and docs/, from one process; only clean
+    results (exit 0 with a usage line) are kept: anything else is redone alone by python_help."""
+    targets = sorted({target for command in ALL_COMMANDS if (target := python_target(command))})
+    try:
+        result = subprocess.run(
+            [sys.executable, "-c", HELP_BATCH, json.dumps(targets)],
+            cwd=REPO_ROOT, capture_output=True, text=True, timeout=HELP_TIMEOUT_S,
+        )  # fmt: skip
+        found = json.loads(result.stdout.strip().splitlines()[-1]) if result.returncode == 0 else {}
+    except (subprocess.TimeoutExpired, ValueError, IndexError):
+        found = {}
+    return {key: (code, text) for key, (code, text) in found.items() if code == 0 and "usage:" in text}
+
+
 @functools.cache
 def python_help(kind: str, target: str) -> tuple[int, str]:
     """Exit code and output of ``python -m MODULE --help`` / ``python SCRIPT --help``."""
+    batched = batched_python_help().get(f"{kind}:{target}")
+    if batched is not None:
+        return batched
     run = [sys.executable, "-m", target] if kind == "module" else [sys.executable, target]
     try:
         result = subprocess.run(
@@ -321,24 +371,33 @@ def check_command(command: ReadmeCommand) -> None:
     {"symbio": check_symbio, "python": check_python, "make": check_make}[command.program](command)
 
 
-def check_readme_text(markdown: str) -> int:
+def check_readme_text(markdown: str, source: str = "README") -> int:
     """Check every command of ``markdown``; raises ReadmeCommandError at the first broken one."""
-    commands = readme_commands(markdown)
+    commands = readme_commands(markdown, source)
     for command in commands:
         check_command(command)
     return len(commands)
 
 
-# ------------------------------------------------------------------------------------ the README
-README_COMMANDS = readme_commands(README.read_text(encoding="utf-8")) if README.is_file() else []
+# ------------------------------------------------------------------------------------ the README and docs/
+DOCS_FILES = sorted(DOCS.glob("*.md"))
 
 
-def by_program(program: str) -> list[ReadmeCommand]:
-    return [command for command in README_COMMANDS if command.program == program]
+def file_commands(path: Path) -> list[ReadmeCommand]:
+    source = path.relative_to(REPO_ROOT).as_posix()
+    return readme_commands(path.read_text(encoding="utf-8"), source=source)
+
+
+README_COMMANDS = file_commands(README) if README.is_file() else []
+DOCS_COMMANDS = [command for path in DOCS_FILES for command in file_commands(path)]
+
+
+def by_program(program: str, commands: Sequence[ReadmeCommand] = README_COMMANDS) -> list[ReadmeCommand]:
+    return [command for command in commands if command.program == program]
 
 
 def command_id(command: ReadmeCommand) -> str:
-    return f"README:{command.line}:{' '.join(command.argv)[:60]}"
+    return f"{command.source}:{command.line}:{' '.join(command.argv)[:60]}"
 
 
 def test_readme_has_commands() -> None:
@@ -347,18 +406,29 @@ def test_readme_has_commands() -> None:
     assert by_program("make")
 
 
-@pytest.mark.parametrize("command", by_program("symbio"), ids=command_id)
-def test_readme_symbio_command(command: ReadmeCommand) -> None:
+def test_docs_have_commands() -> None:
+    """Guards the extraction from docs/: the notes that hold the measurements show how they were made."""
+    assert DOCS_FILES, f"no markdown files in {DOCS}"
+    assert by_program("symbio", DOCS_COMMANDS), "no `symbio` command found in docs/*.md"
+    assert by_program("python", DOCS_COMMANDS), "no `python -m eval...` command found in docs/*.md"
+    assert {command.source for command in DOCS_COMMANDS} >= {"docs/slam-runs.md", "docs/paper-experiments.md"}
+
+
+ALL_COMMANDS = [*README_COMMANDS, *DOCS_COMMANDS]
+
+
+@pytest.mark.parametrize("command", by_program("symbio", ALL_COMMANDS), ids=command_id)
+def test_symbio_command(command: ReadmeCommand) -> None:
     check_symbio(command)
 
 
-@pytest.mark.parametrize("command", by_program("python"), ids=command_id)
-def test_readme_python_command(command: ReadmeCommand) -> None:
+@pytest.mark.parametrize("command", by_program("python", ALL_COMMANDS), ids=command_id)
+def test_python_command(command: ReadmeCommand) -> None:
     check_python(command)
 
 
-@pytest.mark.parametrize("command", by_program("make"), ids=command_id)
-def test_readme_make_command(command: ReadmeCommand) -> None:
+@pytest.mark.parametrize("command", by_program("make", ALL_COMMANDS), ids=command_id)
+def test_make_command(command: ReadmeCommand) -> None:
     check_make(command)
 
 
@@ -369,7 +439,7 @@ def test_installed_symbio_script_runs() -> None:
         pytest.skip(f"no console script at {script} (project not installed in this interpreter)")
     result = subprocess.run([str(script), "--help"], capture_output=True, text=True, timeout=HELP_TIMEOUT_S)
     assert result.returncode == 0, result.stderr
-    for command in by_program("symbio"):
+    for command in by_program("symbio", ALL_COMMANDS):
         path = subcommand_path(list(command.argv[1:]))
         if path:
             assert path[0] in result.stdout, f"`symbio --help` does not list {path[0]}"
@@ -379,7 +449,7 @@ def test_installed_symbio_script_runs() -> None:
 def test_extraction_of_fenced_and_inline_commands() -> None:
     markdown = "\n".join(
         [
-            "Intro `symbio eval lcd` and `python -m eval.bench_lcd --detectors vbow --sweep",
+            "Intro `symbio eval lcd` and `python -m eval.bench.lcd --detectors vbow --sweep",
             "KEY=V1,V2` wraps.",
             "```bash",
             "symbio eval lcd scene \\",
@@ -402,7 +472,7 @@ def test_extraction_of_fenced_and_inline_commands() -> None:
         (6, ("make", "test-shared"), True),
         (6, ("symbio", "detectors"), True),
         (10, ("symbio", "--help"), True),
-        (1, ("python", "-m", "eval.bench_lcd", "--detectors", "vbow", "--sweep", "KEY=V1,V2"), False),
+        (1, ("python", "-m", "eval.bench.lcd", "--detectors", "vbow", "--sweep", "KEY=V1,V2"), False),
     ]
 
 
@@ -466,8 +536,14 @@ def test_broken_readme_commands_fail(markdown: str, message: str) -> None:
         check_readme_text(markdown)
 
 
+def test_broken_docs_command_names_its_file() -> None:
+    markdown = "Measured (`python -m eval.bench.lcd --json out.json --retired-option 3`).\n"
+    with pytest.raises(ReadmeCommandError, match=r"^docs/note\.md line 1 \(inline code\).*--retired-option"):
+        check_readme_text(markdown, source="docs/note.md")
+
+
 def test_python_command_with_an_unknown_option_fails() -> None:
-    module = "eval.bench_lcd"
+    module = "eval.bench.lcd"
     check_readme_text(f"Run `python -m {module} --json out.json`.")
     with pytest.raises(ReadmeCommandError, match="does not list the option --no-such-option"):
         check_readme_text(f"Run `python -m {module} --json out.json --no-such-option`.")
@@ -486,7 +562,7 @@ def test_valid_commands_and_fragments_pass(tmp_path: Path, monkeypatch: pytest.M
             "symbio eval lcd missing/folder --detector vbow,symbiolcd2 --set iterations=5",
             "make test",
             "```",
-            "Inline: `symbio eval lcd --tolerance 3`, `symbio synth`, `python -m eval.bench_NAME`.",
+            "Inline: `symbio eval lcd --tolerance 3`, `symbio synth`, `python -m eval.bench.NAME`.",
         ]
     )
     assert check_readme_text(markdown) == 5

@@ -271,6 +271,7 @@ def test_a_run_that_never_initialises_says_so(
     assert "too much motion between frames" in caplog.text
 
 
+@pytest.mark.slow
 def test_mono_vo_smoke(small_loop_scene: Path, tmp_path: Path) -> None:
     pytest.importorskip("frontends.mono_vo")
     out = tmp_path / "out"

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from eval.sweep import ClusterOptions, ResultStore, dask_client, job_key, run_jobs
+from eval.paper.sweep import ClusterOptions, ResultStore, dask_client, job_key, run_jobs
 
 THREADS = ClusterOptions(workers=2, processes=False)
 
@@ -198,7 +198,7 @@ def test_dashboard_that_cannot_listen_is_a_config_error() -> None:
 def test_dashboard_option_of_eval_commands(
     command: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    from eval import table
+    from eval.paper import table
     from eval.cli import main
 
     seen: list[ClusterOptions] = []

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from eval.synth_keyframes import keyframe_with_depth, scene_camera
+from eval.bench.synth_keyframes import keyframe_with_depth, scene_camera
 from frontends.errors import ConfigError
 from frontends.orb import match_descriptors
 from frontends.synth.render import SceneRenderer

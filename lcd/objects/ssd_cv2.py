@@ -24,7 +24,7 @@ Choices:
   converted to BGR.
 
 ``onnx`` with ``layout=ssd-raw`` runs the same network with onnxruntime, gives the same detections
-(within 0.2 px and 1e-5 in score on the fr3 frames) and is the faster path; ``eval/bench_objects.py``
+(within 0.2 px and 1e-5 in score on the fr3 frames) and is the faster path; ``eval/bench/objects.py``
 measures both.
 """
 

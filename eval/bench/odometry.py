@@ -10,7 +10,7 @@ above ``--collapse``, default 0.3 m: the collapsed maps of the 600-frame scenes 
 others below 0.25 m) and the geometric-mean ATE of the others. ``--against OLD.json`` (an earlier
 ``--json``) compares: collapses in each, and the geometric mean over the runs neither collapses.
 
-Usage: ``python -m eval.bench_odometry [--trajectories loop,figure8,out-and-back] [--seeds 0-6]
+Usage: ``python -m eval.bench.odometry [--trajectories loop,figure8,out-and-back] [--seeds 0-6]
 [--frontend-seeds 0,1] [--frames 600] [--jobs 2] [--work DIR] [--set SECTION.key=value ...]
 [--json OUT] [--against OLD.json]``. ``--set`` takes ``symbio run``'s keys (a key without a section
 goes to the frontend), e.g. ``--set keyframes.search_neighbours=8 --set keyframes.tracked_ratio=0.7``.
@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from eval.bench_pipeline import run_scene, scene
+from eval.bench.pipeline import run_scene
+from eval.bench.scenes import parse_seeds, scene_folder
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.errors import ConfigError
 
@@ -54,18 +55,6 @@ class Summary:
     collapses: list[str]
     #: Geometric-mean ATE (m) over the runs that did not collapse (None if all did).
     geometric_mean_ate: float | None
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``0,1,2`` or ``0-6`` (or a mix: ``0-2,5``)."""
-    seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            first, dash, last = part.partition("-")
-            seeds += list(range(int(first), int(last) + 1)) if dash else [int(first)]
-    except ValueError:
-        raise ConfigError(f"seeds must look like 0,1,2 or 0-6, got {text!r}") from None
-    return seeds
 
 
 def summarise(ate: Mapping[str, float | None], collapse_m: float) -> Summary:
@@ -101,7 +90,7 @@ def _geometric_mean(values: Sequence[float]) -> float | None:
 
 def _render(args: tuple[str, int, int, Path]) -> Path:
     trajectory, seed, frames, work = args
-    return scene(work, trajectory, seed, frames)
+    return scene_folder(work, trajectory, seed, frames)
 
 
 def _run(args: tuple[Job, Path, Path, tuple[str, ...]]) -> tuple[str, dict[str, Any]]:

@@ -7,7 +7,7 @@ against ``--stored`` images, 2000 by default). Descriptors are real ORB descript
 synthetic frames, so the word distribution (hence posting-list lengths) is realistic; stored
 images are made distinct by shuffling descriptors between frames with a seeded generator.
 
-Usage: ``python -m eval.bench_vbow [--vocabulary PATH] [--stored 2000] [--json OUT]``.
+Usage: ``python -m eval.bench.vbow [--vocabulary PATH] [--stored 2000] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.bench_synth import pin_to_one_core
+from eval.bench.synth import pin_to_one_core
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.orb import OrbConfig, extract_orb
 from frontends.synth.render import SceneRenderer

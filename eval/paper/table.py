@@ -3,7 +3,7 @@
 ``symbio eval table --config eval/configs/paper.yaml --out DIR`` runs, per dataset of the config:
 
 * Table II: precision and recall (at each detector's own threshold; recall at 100 % precision and
-  PR-AUC too) of ``symbiolcd2``, ``vbow`` and the ML baselines of ``eval.baselines`` (SVM-RBF,
+  PR-AUC too) of ``symbiolcd2``, ``vbow`` and the ML baselines of ``eval.paper.baselines`` (SVM-RBF,
   decision tree, 4x16 network, SymbioLCD's Random Forest on the tabular pair features, trained on
   the config's ``train`` split of synthetic seeds >= 100, never on a test scene);
 * Table III: the ablation ``symbiolcd2-flat`` / ``symbiolcd2-two-tier`` / ``symbiolcd2``;
@@ -15,7 +15,7 @@
   first accepted loop that is true (within the dataset's tolerance of a GT loop pair), the first
   accepted loop of any kind, and the ATE (evo, Sim(3)-aligned) before and after loop closing.
 
-Every (dataset, detector, seed) LCD run and every pipeline run is one job of ``eval.sweep``: a Dask
+Every (dataset, detector, seed) LCD run and every pipeline run is one job of ``eval.paper.sweep``: a Dask
 task (a LocalCluster sized to the machine, or ``--scheduler ADDRESS``) whose result is stored in
 ``DIR/results/`` under the hash of its spec, so rerunning an interrupted command redoes only the
 missing jobs and gives the same tables. A failing job is listed (``failures.csv``, the report) and
@@ -55,11 +55,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from eval.baselines import BASELINE_NAMES, TrainSplit, build_baseline, render_scene, scaled_synth_config
 from eval.lcd_eval import LcdRun, QueryRecord, default_object_detector, figures_of, plot_pr, run_lcd
 from eval.lcd_metrics import gt_references, is_true_match
-from eval.stats import RankAnalysis, StatsMode, plot_critical_difference, rank_detectors
-from eval.sweep import (
+from eval.paper.baselines import BASELINE_NAMES, TrainSplit, build_baseline, render_scene, scaled_synth_config
+from eval.paper.stats import RankAnalysis, StatsMode, plot_critical_difference, rank_detectors
+from eval.paper.sweep import (
     ClusterOptions,
     JobFailure,
     JobResult,
@@ -358,7 +358,7 @@ def training_table_path(train: Mapping[str, Any], seed: int, work: Path) -> Path
 
 def cached_training_table(train: Mapping[str, Any], seed: int, work: Path) -> Path:
     """The split's training table for ``seed``, built once (atomically) under ``work/train``."""
-    from eval.baselines import training_table
+    from eval.paper.baselines import training_table
 
     path = training_table_path(train, seed, work)
     if not path.is_file():

@@ -6,7 +6,7 @@ per second (``write_scene`` into a temporary folder, PNG encoding included). Ope
 one thread and, where the OS allows, the process is pinned to one CPU, so the PNG writer thread
 shares that core. Target: >= 30 render fps at 640x480.
 
-Usage: ``python -m eval.bench_synth [--frames 150] [--json OUT]``.
+Usage: ``python -m eval.bench.synth [--frames 150] [--json OUT]``.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ and the per-job overhead of ``--tiny`` empty jobs (round trip through the schedu
 store). Target: speedup >= 1.7 on 2 workers. For reference, the machine's own ceiling: how much
 faster 2 processes of pure CPU work finish than 1 (2.0 on two free cores; less on shared vCPUs).
 
-Usage: ``python eval/bench_sweep.py [--jobs 6] [--frames 900] [--tiny 200] [--work DIR] [--json OUT]``.
+Usage: ``python -m eval.bench.sweep [--jobs 6] [--frames 900] [--tiny 200] [--work DIR] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from eval.sweep import ClusterOptions, JobResult, JobSpec, ResultStore, dask_client, run_jobs
-from eval.table import DatasetEntry, execute_job, lcd_spec, prepare, resolve_datasets
+from eval.paper.sweep import ClusterOptions, JobResult, JobSpec, ResultStore, dask_client, run_jobs
+from eval.paper.table import DatasetEntry, execute_job, lcd_spec, prepare, resolve_datasets
 from frontends.cli_common import add_json_option, write_json
 
 SPEEDUP_TARGET = 1.7

@@ -10,7 +10,7 @@
   the graph is built, then added one by one) against one batch GNC pass (``rejection=gnc``) over the
   same graph, measured in the same run.
 
-Usage: ``python -m eval.bench_backend [--quick] [--shared DIR] [--json OUT]``
+Usage: ``python -m eval.bench.backend [--quick] [--shared DIR] [--json OUT]``
 """
 
 from __future__ import annotations

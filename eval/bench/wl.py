@@ -19,7 +19,7 @@ Figures (one run, so ratios compare like with like):
   keyframes one fit takes minutes.
 - ``ms_add_query_h<h>``: p50 of the last 100 ``add_and_query`` calls at ``--table-keyframes`` stored.
 
-Usage: ``python eval/bench_wl.py --keyframes 2000 [--iterations 10] --json OUT``.
+Usage: ``python -m eval.bench.wl --keyframes 2000 [--iterations 10] --json OUT``.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ to ground truth, evo's Umeyama), and that alignment's error in % of the path bef
 relocalisation can only be judged where the map was right. The summary counts relocalisations, and
 among those on a right map (below ``--map-error`` %) the ones off by more than ``--wrong`` m.
 
-Usage: ``python -m eval.bench_relocalisation [--trajectories loop,figure8,out-and-back]
+Usage: ``python -m eval.bench.relocalisation [--trajectories loop,figure8,out-and-back]
 [--seeds 0-1] [--frontend-seeds 0-2] [--blackouts 40,70,100] [--black 20] [--back 15] [--after 50]
 [--jobs 2] [--set KEY=VALUE ...] [--json OUT]``; ``--set`` takes mono-vo keys
 (``relocalisation.max_sigma_ratio=1e9`` turns the centre-spread check off).
@@ -33,8 +33,8 @@ from typing import Any, Literal
 import numpy as np
 from evo.core.geometry import umeyama_alignment
 
-from eval.bench_frontend import synthetic_scene, track_all
-from eval.bench_odometry import parse_seeds
+from eval.bench.frontend import track_all
+from eval.bench.scenes import parse_seeds, scene_frames
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.errors import ConfigError
 from frontends.mono_vo import create
@@ -125,7 +125,7 @@ def _scene_outcomes(args: tuple[str, int, list[int], list[Blackout], int, tuple[
     trajectory, seed, frontend_seeds, blackouts, after, overrides = args
     logging.basicConfig(level=logging.ERROR)
     needed = max(b.first_black + b.black + after for b in blackouts)
-    camera, frames, _ = synthetic_scene(trajectory, seed, SCENE_FRAMES, rendered_frames=needed)
+    camera, frames, _ = scene_frames(trajectory, seed, SCENE_FRAMES, rendered_frames=needed)
     outcomes = []
     for fs in frontend_seeds:
         for b in blackouts:

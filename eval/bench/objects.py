@@ -7,7 +7,7 @@ of every frame (the whole ``detect`` call: resize, network, post-processing; one
 first; the two take turns on each image, so a change of machine load hits both), and how closely
 they agree (largest box-corner and score difference between same-label detections).
 
-Usage: ``python -m eval.bench_objects [--shared PATH] [--repeats 3] [--json OUT]``; the shared folder
+Usage: ``python -m eval.bench.objects [--shared PATH] [--repeats 3] [--json OUT]``; the shared folder
 defaults to ``$SYMBIO_SHARED`` or ``../shared``.
 """
 
@@ -36,7 +36,7 @@ MODEL = "models/ssd_mobilenet_v2_coco_raw.onnx"
 
 
 def default_shared() -> Path:
-    return Path(os.environ.get("SYMBIO_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+    return Path(os.environ.get("SYMBIO_SHARED", Path(__file__).resolve().parents[2].parent / "shared"))
 
 
 def time_detectors(

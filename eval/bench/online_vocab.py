@@ -2,7 +2,7 @@
 
 A camera exploring new ground is the costly case: every keyframe founds words, so the word set and
 the posting lists grow all the time. The stream imitates that with real ORB descriptors of
-rendered synthetic frames (``eval.bench_vbow.descriptor_pool``): landmark j is pool descriptor
+rendered synthetic frames (``eval.bench.vbow.descriptor_pool``): landmark j is pool descriptor
 ``j mod P`` with a quarter of its bits flipped (distinct landmarks, realistic bit statistics);
 keyframe k observes ``--descriptors`` (default 1000) descriptors: 70 % are the landmarks
 ``[k * step, k * step + 700)`` (``step`` = 140, so each landmark is seen in five consecutive
@@ -16,7 +16,7 @@ tree with its inverted index (``ms_tree_<n>``: ``transform`` + ``BowDatabase.que
 ``ratio_online_tree_<n>`` and ``ratio_online_<n>_<first>`` (growth since the first checkpoint)
 are measured in this one run.
 
-Usage: ``python -m eval.bench_online_vocab [--keyframes 100,1000,3000] [--set KEY=VALUE] [--json OUT]``.
+Usage: ``python -m eval.bench.online_vocab [--keyframes 100,1000,3000] [--set KEY=VALUE] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from eval.bench_synth import pin_to_one_core
-from eval.bench_vbow import descriptor_pool
+from eval.bench.synth import pin_to_one_core
+from eval.bench.vbow import descriptor_pool
 from frontends.cli_common import add_json_option, add_set_option, print_figures, write_json
 from frontends.config import load_config
 from frontends.errors import ConfigError

@@ -14,7 +14,7 @@ Inputs: a synthetic 640x480 scene rendered in memory with ``frontends.synth`` (`
 further synthetic scenes; ``--mask-movable 0.3`` masks their walking people on keyframes as the
 pipeline does with its object detector (GT boxes, each missed with that probability).
 
-Usage: ``python -m eval.bench_frontend [--frames 300] [--scenes ...] [--set key=value] [--json OUT]``.
+Usage: ``python -m eval.bench.frontend [--frames 300] [--scenes ...] [--set key=value] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -28,18 +28,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from evo.core import metrics
 from evo.core.trajectory import PoseTrajectory3D
 
+from eval.bench.scenes import scene_frames
 from frontends.base import Frontend, TrackResult, with_lookahead
 from frontends.cli_common import add_json_option, write_json
 from frontends.datasets import open_dataset
 from frontends.mono_vo import create
 from frontends.mono_vo.features import OrbExtractor
-from frontends.synth.render import SceneRenderer
-from frontends.synth.world import SynthConfig
 from frontends.types import CameraIntrinsics, Frame
 
 KITTI_CLIP = Path("data/clips/kitti06_f000-050")
@@ -47,25 +45,8 @@ KITTI_CLIP = Path("data/clips/kitti06_f000-050")
 
 def synthetic_frames(trajectory: str, seed: int, frames: int) -> tuple[CameraIntrinsics, list[Frame]]:
     """A synthetic scene rendered in memory (no disk), with ground-truth poses."""
-    camera, result, _ = synthetic_scene(trajectory, seed, frames)
+    camera, result, _ = scene_frames(trajectory, seed, frames)
     return camera, result
-
-
-def synthetic_scene(
-    trajectory: str, seed: int, frames: int, rendered_frames: int | None = None
-) -> tuple[CameraIntrinsics, list[Frame], list[list[tuple[int, int, int, int]]]]:
-    """``synthetic_frames`` and, per frame, the boxes of the movable objects (walking people);
-    only the first ``rendered_frames`` of the ``frames``-long scene, if given."""
-    config = SynthConfig(trajectory=trajectory, seed=seed, frames=frames)  # type: ignore[arg-type]
-    scene = SceneRenderer(config)
-    result, movable = [], []
-    for index in range(frames if rendered_frames is None else min(rendered_frames, frames)):
-        rendered = scene.frame(index)
-        # Grey copies: the renderer reuses its buffers, and 600 colour frames would need 0.5 GB.
-        gray = cv2.cvtColor(rendered.image, cv2.COLOR_BGR2GRAY)
-        result.append(Frame(index, rendered.timestamp, gray, None, rendered.pose.copy()))
-        movable.append([obj.box for obj in rendered.objects if obj.movable])
-    return config.intrinsics, result, movable
 
 
 def oracle_masks(
@@ -216,14 +197,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows: dict[str, dict[str, Any]] = {}
     camera, frames = synthetic_frames(args.trajectory, args.seed, args.frames)
     rows[f"synth_{args.trajectory}_{args.seed}"] = bench_input("x", camera, frames, args.set)
-    shared = Path(os.environ.get("SYMBIO_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+    shared = Path(os.environ.get("SYMBIO_SHARED", Path(__file__).resolve().parents[2].parent / "shared"))
     if (shared / KITTI_CLIP).is_dir():
         camera, frames = dataset_frames(shared / KITTI_CLIP, "kitti")
         rows["kitti06_f000-050"] = bench_input("x", camera, frames, args.set)
     for item in filter(None, args.scenes.split(",")):
         kind, _, seed = item.partition(":")
         scene_seed = int(seed or 0)
-        camera, frames, movable = synthetic_scene(kind, scene_seed, args.scene_frames)
+        camera, frames, movable = scene_frames(kind, scene_seed, args.scene_frames)
         masks = None if args.mask_movable is None else oracle_masks(movable, args.mask_movable, scene_seed)
         figures = evaluate(camera, frames, args.set, masks)
         rows[f"synth_{kind}_{seed}"] = {f"x_{k}": v for k, v in figures.items()}

@@ -9,7 +9,7 @@ random fraction of a checkpoint interval: see ``kill_and_resume``), resumes it a
 trajectory_tum.txt, trajectory_odometry_tum.txt, keyframes_tum.txt and loops.csv byte for byte with
 the reference.
 
-  python -m eval.bench_resume --out bench_resume_out --kills 5 --seed 0 --every 50 --json resume.json
+  python -m eval.bench.resume --out bench_resume_out --kills 5 --seed 0 --every 50 --json resume.json
 
 Exit status 1 unless every round was killed and its resumed outputs equal the reference's.
 """
