@@ -198,8 +198,8 @@ def test_dashboard_that_cannot_listen_is_a_config_error() -> None:
 def test_dashboard_option_of_eval_commands(
     command: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    from eval.paper import table
     from eval.cli import main
+    from eval.paper import table
 
     seen: list[ClusterOptions] = []
 
