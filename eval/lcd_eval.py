@@ -13,9 +13,11 @@ A detector or object detector that raises costs only that keyframe (logged and c
 
 ``--verify`` also runs each query's top ``--top-k`` candidates (default 3), best first and whatever
 their score, through the pipeline's own two-view verification (``slam_backend.verify.verify_two_view``:
-ORB matching and pycolmap's two-view geometry with ``symbio run``'s verifier defaults; images only, so
-not the map-point Sim(3)/PnP stages). A query's verified answer is the best-ranked candidate that
-passes; verification stops there (later candidates cannot change the answer). Added figures:
+ORB matching and pycolmap's two-view geometry with ``symbio run``'s verifier defaults, on the detectors'
+features or (``--verify-features tracking``) the denser ones a ``symbio run`` keyframe carries; images
+only, so not the map-point Sim(3)/PnP stages). A query's verified answer is the candidate with the most
+epipolar inliers among those that pass (``--verify-answer rank``: the best-ranked one that passes).
+Added figures:
 ``recall_at_100p_verified`` (a threshold swept over the verified answers' inlier counts),
 ``precision_verified`` / ``recall_verified`` at the verifier's own decision (every query with a
 verified answer accepted; nothing accepted counts as precision 1.0), ``recall_at_1_verified`` (equal
@@ -53,7 +55,7 @@ from frontends.datasets import Dataset, open_dataset
 from frontends.datasets.base import every_period
 from frontends.datasets.cli import add_dataset_arguments
 from frontends.errors import ConfigError
-from frontends.orb import OrbConfig, extract_orb
+from frontends.orb import TRACKING_ORB, OrbConfig, extract_orb
 from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
 from lcd.base import LOOP_DETECTORS, OBJECT_DETECTORS, LoopCandidate, LoopDetector, ObjectDetector
 
@@ -129,28 +131,53 @@ def propose_loops(
 
 @dataclass(frozen=True)
 class VerifiedAnswer:
-    """The best-ranked candidate that passed (None: none did), its inliers, the work it took."""
+    """The chosen candidate among those that passed (None: none did), its inliers, the work it took."""
 
     candidate: LoopCandidate | None
     inliers: int
-    #: Candidates verified (up to and including the one that passed).
+    #: Candidates verified.
     checked: int
     ms: float
+
+
+#: ``--verify-features tracking``: the features a `symbio run` keyframe carries (the mono-vo
+#: frontend's), detected at 2x below 240 px like the detectors' (`OrbConfig.upsample_below`): tracking
+#: does not upsample, and without it no corridor (160x120) pair passes (docs/2026-12-06-verified-lcd.md).
+VERIFICATION_ORB = replace(TRACKING_ORB, upsample_below=OrbConfig().upsample_below)
+
+#: How a query's verified answer is chosen among its top-k candidates that pass (``--verify-answer``).
+VERIFIED_ANSWERS = ("inliers", "rank")
 
 
 class CandidateVerifier:
     """``--verify``: each query's top-k candidates through ``slam_backend.verify.verify_two_view``.
 
+    ``answer="inliers"`` (default) verifies all k and answers with the one with the most epipolar
+    inliers, the view that overlaps the query most (``symbio run`` sends every verified candidate to
+    the backend, so this is the best constraint it gets); ``"rank"`` answers with the best-ranked
+    candidate that passes and stops there. On Gardens Point (top 5, tracking features) the first
+    answers right for 0.695 (vbow) / 0.505 (symbiolcd2) of the loop queries, the second for 0.640 /
+    0.425: the wrong verified answers are mostly the same place 3-8 frames off
+    (docs/2026-12-06-verified-lcd.md).
     Outcomes are cached by keyframe pair with their measured time, so detectors proposing the same
     pair share one verification and each is charged what it cost.
     """
 
-    def __init__(self, camera: CameraIntrinsics, config: VerifierConfig, top_k: int) -> None:
+    def __init__(
+        self,
+        camera: CameraIntrinsics,
+        config: VerifierConfig,
+        top_k: int,
+        orb: OrbConfig | None = None,
+        answer: str = "inliers",
+    ) -> None:
         # pycolmap loads here, not with the module: only `eval lcd --verify` pays for it.
         from slam_backend.verify import colmap_camera
 
         if top_k < 1:
             raise ConfigError(f"--top-k must be >= 1, got {top_k}")
+        if answer not in VERIFIED_ANSWERS:
+            raise ConfigError(f"--verify-answer must be one of {', '.join(VERIFIED_ANSWERS)}, got {answer!r}")
         # The dataset's camera, even when only estimated: pycolmap's calibrated path falls back to the
         # fundamental matrix when E fits < 95 % of F's inliers. Measured on GT pairs with the 60 deg
         # estimate, it passes 70.5 % (rtabmap) / 52.0 % (gardens) vs 67.5 / 50.5 % for F/H only,
@@ -158,17 +185,30 @@ class CandidateVerifier:
         self.camera = colmap_camera(camera)
         self.config = config
         self.top_k = top_k
+        self.rule = answer
+        # None: verify with the detectors' features (the keyframe's own); else extract these
+        # (``--verify-features tracking``, docs/2026-12-06-verified-lcd.md).
+        self.orb = orb
         self._keyframes: list[Keyframe] = []
         self._outcomes: dict[tuple[int, int], tuple[bool, int, float]] = {}
 
+    def features(self, keyframe: Keyframe, gray: np.ndarray) -> Keyframe:
+        """``keyframe`` with the verification features of its image (no image kept)."""
+        if self.orb is None:
+            return replace(keyframe, image=None)
+        keypoints, descriptors = extract_orb(gray, self.orb)
+        return replace(keyframe, keypoints=keypoints, descriptors=descriptors, image=None)
+
     def remember(self, keyframe: Keyframe) -> None:
-        """Keep a processed keyframe's features as a future match (its image is dropped)."""
-        self._keyframes.append(replace(keyframe, image=None))
+        """Keep a processed keyframe (with ``features``) as a future match."""
+        self._keyframes.append(keyframe)
 
     def answer(self, query: Keyframe, candidates: Sequence[LoopCandidate]) -> VerifiedAnswer:
+        """``query`` carries the verification features (``features``)."""
         from slam_backend.verify import verify_two_view
 
         spent, checked = 0.0, 0
+        best: tuple[LoopCandidate, int] | None = None
         for candidate in candidates[: self.top_k]:
             key = (query.id, candidate.match)
             if key not in self._outcomes:
@@ -178,9 +218,13 @@ class CandidateVerifier:
                 self._outcomes[key] = (outcome.passed, outcome.inliers, ms)
             passed, inliers, ms = self._outcomes[key]
             spent, checked = spent + ms, checked + 1
-            if passed:
-                return VerifiedAnswer(candidate, inliers, checked, spent)
-        return VerifiedAnswer(None, 0, checked, spent)
+            if passed and (best is None or inliers > best[1]):
+                best = (candidate, inliers)
+                if self.rule == "rank":
+                    break
+        if best is None:
+            return VerifiedAnswer(None, 0, checked, spent)
+        return VerifiedAnswer(best[0], best[1], checked, spent)
 
 
 def warn_short_candidate_lists(detectors: Sequence[LoopDetector], top_k: int) -> None:
@@ -231,6 +275,7 @@ def run_lcd(
             len(seen_frames), frame.index, frame.timestamp, pose, keypoints, descriptors, found, frame.image
         )
         refs = references.get(frame.index)
+        to_verify = verifier.features(keyframe, frame.gray) if verifier is not None else keyframe
         for detector, run in zip(detectors, runs, strict=True):
             start = time.perf_counter()
             candidates = propose_loops(detector, keyframe, frame, run)
@@ -256,7 +301,7 @@ def run_lcd(
                 1e3 * (done - start),
             )
             if verifier is not None:
-                answer = verifier.answer(keyframe, candidates)
+                answer = verifier.answer(to_verify, candidates)
                 record.candidates_verified, record.ms_verify = answer.checked, answer.ms
                 if answer.candidate is not None:
                     record.verified_match_frame = seen_frames[answer.candidate.match]
@@ -267,7 +312,7 @@ def run_lcd(
             run.keyframes += 1
             run.object_failures = object_failures.object_failures
         if verifier is not None:
-            verifier.remember(keyframe)
+            verifier.remember(to_verify)
         seen_frames.append(frame.index)
     return runs
 
@@ -446,6 +491,18 @@ def add_lcd_parser(subparsers: Any) -> None:
         help="--verify: candidates verified per query, best first (default 3)",
     )
     parser.add_argument(
+        "--verify-answer",
+        choices=VERIFIED_ANSWERS,
+        help="--verify: a query's answer among its candidates that pass: the one with the most "
+        "epipolar inliers (default) or the best-ranked one",
+    )
+    parser.add_argument(
+        "--verify-features",
+        choices=("detector", "tracking"),
+        help="--verify: match the detectors' features (default) or the denser ones a `symbio run` "
+        "keyframe carries",
+    )
+    parser.add_argument(
         "--verify-set",
         dest="verify_overrides",
         action="append",
@@ -465,8 +522,12 @@ def add_lcd_parser(subparsers: Any) -> None:
 def run_lcd_command(args: argparse.Namespace) -> int:
     from frontends.config import load_config
 
-    if not args.verify and (args.top_k is not None or args.verify_overrides):
-        raise ConfigError("--top-k and --verify-set apply only with --verify")
+    if not args.verify and (
+        args.top_k is not None or args.verify_overrides or args.verify_answer or args.verify_features
+    ):
+        raise ConfigError(
+            "--top-k, --verify-answer, --verify-features and --verify-set apply only with --verify"
+        )
     top_k = 3 if args.top_k is None else args.top_k
     if top_k < 1:
         raise ConfigError(f"--top-k must be >= 1, got {top_k}")
@@ -486,7 +547,11 @@ def run_lcd_command(args: argparse.Namespace) -> int:
         from slam_backend.verify import VerifierConfig
 
         verifier = CandidateVerifier(
-            dataset.camera, load_config(VerifierConfig, None, args.verify_overrides), top_k
+            dataset.camera,
+            load_config(VerifierConfig, None, args.verify_overrides),
+            top_k,
+            orb=VERIFICATION_ORB if args.verify_features == "tracking" else None,
+            answer=args.verify_answer or "inliers",
         )
         warn_short_candidate_lists(detectors, top_k)
     runs = run_lcd(
@@ -504,7 +569,15 @@ def run_lcd_command(args: argparse.Namespace) -> int:
             "detector": name,
             "object_detector": object_name,
             "tolerance": args.tolerance,
-            **({"top_k": top_k} if verifier is not None else {}),
+            **(
+                {
+                    "top_k": top_k,
+                    "verify_answer": verifier.rule,
+                    "verify_features": args.verify_features or "detector",
+                }
+                if verifier is not None
+                else {}
+            ),
             **figures_of(run, detector.threshold),
             **detector_counters(detector),
         }
