@@ -33,7 +33,7 @@ from tqdm import tqdm
 from frontends.config import config_to_dict
 from frontends.errors import ConfigError, InputFileError
 from frontends.gt_loops import write_loop_pairs
-from frontends.synth.covisibility import label_covisible_pairs, overlap_matrix
+from frontends.synth.covisibility import covisible_pairs
 from frontends.synth.render import GtObject, RenderedFrame, SceneRenderer
 from frontends.synth.world import SynthConfig, WorldObject
 from frontends.trajectory_io import write_trajectory
@@ -97,8 +97,9 @@ def write_scene(
     (out / "intrinsics.yaml").write_text(yaml.safe_dump(intrinsics, sort_keys=False), encoding="utf-8")
     (out / "gt_objects.jsonl").write_text("".join(line + "\n" for line in object_lines), encoding="utf-8")
     label_start = time.perf_counter()
-    overlap = overlap_matrix(np.stack(depth_grids), scene.path.poses, config.intrinsics, config.loop_labels)
-    pairs = label_covisible_pairs(overlap, scene.path.poses, scene.path.timestamps, config.loop_labels)
+    pairs = covisible_pairs(
+        np.stack(depth_grids), scene.path.poses, scene.path.timestamps, config.intrinsics, config.loop_labels
+    )
     label_seconds = time.perf_counter() - label_start
     write_loop_pairs(out / "gt_loop_pairs.txt", pairs)
     path_figures = {
