@@ -1,12 +1,17 @@
-"""The indexed covisibility labeller (``covisible_pairs``) against a brute-force reference: every
-pair's overlap measured, every rule applied to the full matrices (the labeller before indexing)."""
+"""The indexed covisibility labeller (``covisible_pairs``) against the dense one: every pair's
+overlap measured, every rule applied to the full matrices."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from frontends.synth.covisibility import CovisibilityLabelConfig, covisible_pairs
+from frontends.synth.covisibility import (
+    CovisibilityLabelConfig,
+    covisible_pairs,
+    label_covisible_pairs,
+    overlap_matrix,
+)
 from frontends.synth.trajectories import camera_path
 from frontends.synth.world import SynthConfig
 
@@ -14,55 +19,10 @@ from frontends.synth.world import SynthConfig
 def brute_force_pairs(
     grids: np.ndarray, poses: np.ndarray, timestamps: np.ndarray, config: SynthConfig
 ) -> np.ndarray:
-    """Every (N, N) overlap, then the revisit rules on dense matrices."""
-    camera, labels = config.intrinsics, config.loop_labels
-    count, rows, columns = grids.shape
-    step, every = labels.depth_step, labels.sample_every
-    u, v = np.meshgrid(np.arange(columns) * step + step // 2, np.arange(rows) * step + step // 2)
-    sampled = (slice(every // 2, None, every), slice(every // 2, None, every))
-    u, v = u[sampled], v[sampled]
-    rays = np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy])
-    world_to_camera = np.linalg.inv(poses)
-    frames = np.arange(count)[:, None]
-    overlap = np.zeros((count, count), np.float32)
-    for r in range(count):
-        inverse = grids[r][sampled].ravel()
-        drawn = inverse > 0
-        if not drawn.any():
-            continue
-        in_r = np.vstack([rays[:, drawn] / inverse[drawn], 1.0 / inverse[drawn]])
-        world = poses[r, :3, :3] @ in_r + poses[r, :3, 3:4]
-        in_q = world_to_camera[:, :3, :3] @ world + world_to_camera[:, :3, 3:4]
-        z = in_q[:, 2]
-        front = z > 1e-6
-        safe_z = np.where(front, z, 1.0)
-        x = camera.fx * in_q[:, 0] / safe_z + camera.cx
-        y = camera.fy * in_q[:, 1] / safe_z + camera.cy
-        inside = front & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
-        gx = np.clip((x / step).astype(np.int64), 0, columns - 1)
-        gy = np.clip((y / step).astype(np.int64), 0, rows - 1)
-        seen = grids[frames, gy, gx]
-        depth_error = np.abs(1.0 / np.maximum(seen, 1e-9) - z)
-        visible = inside & ((seen < 0) | ((seen > 0) & (depth_error <= labels.depth_tolerance * z)))
-        overlap[r] = visible.sum(axis=1) / world.shape[1]
-    mutual = np.minimum(overlap, overlap.T)
-    centres = poses[:, :3, 3]
-    distance = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    # The first later frame that overlaps each frame by < leave_overlap or is far from it.
-    away = np.triu(
-        (mutual < labels.leave_overlap) | (distance > labels.leave_factor * labels.max_distance), 1
-    )
-    left = np.where(away.any(axis=1), away.argmax(axis=1), count)
-    pairs = [
-        (q, r)
-        for q in range(count)
-        for r in range(q)
-        if mutual[q, r] >= labels.min_overlap
-        and timestamps[q] - timestamps[r] >= labels.min_time_gap
-        and distance[q, r] <= labels.max_distance
-        and left[r] < q
-    ]
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    """Every (N, N) overlap, then the revisit rules on the dense matrices (the labeller before
+    indexing; ``tests/test_covisibility.py`` checks both against analytic cases)."""
+    overlap = overlap_matrix(grids, poses, config.intrinsics, config.loop_labels)
+    return label_covisible_pairs(overlap, poses, timestamps, config.loop_labels)
 
 
 def room_depth(config: SynthConfig, poses: np.ndarray, seed: int) -> np.ndarray:
