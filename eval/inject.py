@@ -303,6 +303,8 @@ class FaultyLoopDetector:
         self.centres = centres
         self.name = inner.name
         self.threshold = inner.threshold
+        if hasattr(inner, "proposal_threshold"):
+            self.proposal_threshold = inner.proposal_threshold
         #: (keyframe id, frame index) of every keyframe seen.
         self.seen: list[tuple[int, int]] = []
 

@@ -156,8 +156,8 @@ class CandidateVerifier:
     inliers, the view that overlaps the query most (``symbio run`` sends every verified candidate to
     the backend, so this is the best constraint it gets); ``"rank"`` answers with the best-ranked
     candidate that passes and stops there. On Gardens Point (top 5, tracking features) the first
-    answers right for 0.695 (vbow) / 0.505 (symbiolcd2) of the loop queries, the second for 0.640 /
-    0.425: the wrong verified answers are mostly the same place 3-8 frames off
+    answers right for 0.695 (vbow) / 0.690 (symbiolcd2) of the loop queries, the second for 0.640 /
+    0.630: the wrong verified answers are mostly the same place 3-8 frames off
     (docs/2026-12-06-verified-lcd.md).
     Outcomes are cached by keyframe pair with their measured time, so detectors proposing the same
     pair share one verification and each is charged what it cost.

@@ -8,8 +8,10 @@ With two image paths, those images are used and their objects come from an objec
 are taken to be a minute apart, so the temporal penalty is negligible.
 
 For each image: ORB features (``frontends.orb.extract_orb``), objects, a ``Keyframe``. Both go to
-``lcd.symbiolcd2.create(["temporal_window=0"])`` (the default window of 10 keyframes would hide the
-first keyframe from the second); the second ``add`` returns the candidate "keyframe 1 revisits
+``lcd.symbiolcd2.create(["temporal_window=0", "idf_power=0"])``: the default window of 10 keyframes
+would hide the first keyframe from the second, and two images are no database to weigh words by
+(the default idf^2 gives every label both images hold the weight ln(2/2) = 0), so this scores with
+the paper's plain kernel. The second ``add`` returns the candidate "keyframe 1 revisits
 keyframe 0" with score = WL kernel - temporal penalty.
 
 Run: ``python examples/symbiolcd2_two_images.py [IMAGE_A IMAGE_B] [--object-detector NAME]``
@@ -89,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, float]:
         parser.error("give two images, or none for the synthetic example")
     views = image_views(args.images, args.object_detector) if args.images else synthetic_views()
 
-    detector = symbiolcd2.create(["temporal_window=0"])
+    detector = symbiolcd2.create(["temporal_window=0", "idf_power=0"])
     candidates = []
     for keyframe_id, (image, objects, timestamp, pose) in enumerate(views):
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)

@@ -29,16 +29,19 @@ them, in docs/paper-interpretation.md):
   label of a feature graph is unique to its graph and adds only to the norms; alpha weighs the
   temporal term against that scale. The paper's h = 50 with alpha = 2 lets the temporal term
   dominate (RTAB-Map samples recall at 100 % precision 0.25 vs 0.91 at h = 10, the default).
-- Word labels are the leaves of the shipped vocabulary (``word_level = 5``): coarser words made
-  the plain vertex histogram (no IDF weighting) too unspecific (0.23-0.73 on the RTAB-Map samples).
-  The online vocabulary's words (``vocabulary=online``) lift Gardens Point but not the RTAB-Map
-  samples (0.705 vs 0.909), so the tree stays the default (docs/2026-12-06-online-vocabulary.md).
-- ``idf_power`` (0 = off, the default; 1 or 2) weighs every WL label by the idf, over the stored
-  graphs, of the input label it descends from (``lcd.wl``). 2 (cosine of TF-IDF histograms) raised
-  recall@1 and AUC-PR on every real set and made ``vocabulary=online`` hold on the RTAB-Map samples
-  (0.977); it stays off because Gardens Point's verified recall@100p fell (docs/2026-12-06-wl-idf.md).
-- ``threshold`` 0.035 lies above the best false positive of all our evaluation sets (the kernel
-  of real loops is 0.02-0.3 at h = 10); lower it when a geometric verifier follows.
+- Words come from a vocabulary built online from the sequence (``vocabulary = "online"``,
+  ``lcd.online_vocabulary``), so they have no training domain; ``vocabulary = ""`` selects the
+  shipped tree (trained on 600 synthetic + 17 real images) and its leaves (``word_level = 5``).
+- ``idf_power = 2`` weighs every WL label by the squared idf, over the stored graphs, of the input
+  label it descends from (``lcd.wl``): the cosine of TF-IDF label histograms. A plain vertex histogram
+  (``idf_power = 0``, the paper's kernel) lets frequent, unspecific words dominate. Online words +
+  p = 2 gave the best raw recall@1 and AUC-PR on every real set (RTAB-Map 0.977 recall@100p,
+  Gardens Point recall@1 0.60 vs 0.315 with tree + p = 0; docs/2026-12-06-wl-idf.md,
+  docs/2026-12-06-symbiolcd2-defaults.md).
+- ``threshold`` 0.011 lies above the best false positive of every ``eval.bench_lcd`` set with these
+  words and weights (0.0102). The IDF scale moves with the number of stored keyframes, so a SLAM run
+  does not gate its geometric checks on it: ``proposal_threshold`` (0: every candidate whose kernel
+  beats the temporal penalty) is what ``symbio run`` verifies, best first.
 - Keyframes inside ``temporal_window`` of the query are never proposed (as in ORB-SLAM).
   Keyframes with fewer than ``min_features`` ORB features neither query nor get matched: two
   featureless images have identical graphs, i.e. a kernel of 1.
@@ -75,7 +78,7 @@ class SymbioLCD2Config:
     #: The object filter applied before the graph (``FilterConfig``).
     objects: FilterConfig = field(default_factory=FilterConfig)
     #: "online" = built from the sequence (``online``), a tree ``.npz``, or empty = the shipped tree.
-    vocabulary: str = ""
+    vocabulary: str = "online"
     #: The online vocabulary's settings (with ``vocabulary: online``).
     online: OnlineVocabularyConfig = field(default_factory=OnlineVocabularyConfig)
     #: Vocabulary tree level whose node ids label feature nodes (the online vocabulary ignores it).
@@ -94,20 +97,24 @@ class SymbioLCD2Config:
     temporal_window: int = 10
     #: Keyframes with fewer ORB features are stored but neither query nor get matched (alike graphs).
     min_features: int = 20
-    #: A candidate whose score S = k_WL - T reaches this counts as a loop.
-    threshold: float = 0.035
+    #: A candidate whose score S = k_WL - T reaches this counts as a loop (0.035 with tree words, p = 0).
+    threshold: float = 0.011
+    #: Lowest S a SLAM run verifies geometrically (0: any S > 0; the IDF scale moves with the map's size).
+    proposal_threshold: float = 0.0
     #: Candidates returned per query, best first.
     max_candidates: int = 5
     #: "ours" = incremental exact WL; "grakel" = grakel refitted (slow; the test oracle).
     wl_backend: Literal["ours", "grakel"] = "ours"
-    #: Experimental: IDF weight of each WL label (``lcd.wl``): 0 off, 1 idf, 2 idf^2.
-    idf_power: int = 0
+    #: IDF weight of each WL label (``lcd.wl``): 0 off (the paper's kernel), 1 idf, 2 idf^2.
+    idf_power: int = 2
 
     def __post_init__(self) -> None:
         if self.idf_power not in (0, 1, 2):
             raise ConfigError(f"symbiolcd2: idf_power must be 0, 1 or 2, got {self.idf_power}")
         if self.idf_power and self.wl_backend == "grakel":
-            raise ConfigError("symbiolcd2: idf_power needs wl_backend: ours (grakel has no IDF weighting)")
+            raise ConfigError(
+                "symbiolcd2: idf_power needs wl_backend: ours (grakel has no IDF weighting; set idf_power=0)"
+            )
 
 
 def temporal_penalty(distance: np.ndarray, alpha: float, beta: float, form: str) -> np.ndarray:
@@ -123,6 +130,7 @@ class SymbioLCD2:
         self.config = config
         self.name = name
         self.threshold = config.threshold
+        self.proposal_threshold = config.proposal_threshold
         self.temporal_window = config.temporal_window
         self.vocabulary = open_vocabulary(config.vocabulary, config.online)
         self.kernel: WLKernel | GrakelWL = (

@@ -106,7 +106,7 @@ log = logging.getLogger(__name__)
 class LoopClosingConfig:
     #: Candidates (best first) verified per query keyframe.
     max_verifications: int = 2
-    #: Verify candidates scoring this share of the detector's threshold (docs/2026-12-06-config-evidence.md)
+    #: Verify candidates scoring this share of the detector's threshold, unless it has a proposal_threshold.
     proposal_ratio: float = 0.5
     #: Rotation sigma (rad) of the loose step linking a new map segment to the previous keyframe.
     segment_link_rotation_sigma: float = 1.0
@@ -705,8 +705,7 @@ class LoopClosing:
         self.counters.seconds["loop_detector"] += time.perf_counter() - start
         if self.on_keyframe is not None:
             self.on_keyframe(keyframe, getattr(self.detector, "last_graph", None))
-        threshold = self.config.proposal_ratio * self.detector.threshold
-        chosen = [c for c in candidates if c.score >= threshold and c.match in self._keyframes]
+        chosen = [c for c in candidates if self._proposed(c.score) and c.match in self._keyframes]
         chosen = chosen[: self.config.max_verifications]
         verifications = [self._verify(keyframe, candidate) for candidate in chosen]
         # The detector's candidates get new records; retries of deferred ones update theirs.
@@ -782,6 +781,14 @@ class LoopClosing:
         if self.on_correction is not None and any(d.accepted for d in outcome):
             self.on_correction(self._current_segment_estimates(keyframe.segment))
         return records
+
+    def _proposed(self, score: float) -> bool:
+        """Whether a candidate's score is worth a geometric check (docs/2026-12-06-config-evidence.md)."""
+        assert self.detector is not None
+        floor = getattr(self.detector, "proposal_threshold", None)
+        if floor is None:
+            floor = self.config.proposal_ratio * self.detector.threshold
+        return score >= floor and score > 0
 
     def _entry_record(self, entry: _Entry, decision: LoopDecision | None) -> LoopRecord:
         """The record of a verified candidate or retry; defers a fresh candidate on a thin map."""

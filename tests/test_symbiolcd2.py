@@ -28,6 +28,12 @@ def test_temporal_penalty_values() -> None:
     np.testing.assert_allclose(paper, [2 * math.log(0.3), 2 * math.log(30.0), 2 * math.log(3000.0)])
 
 
+#: The paper's kernel over the shipped tree's words: identical graphs score exactly 1. With the
+#: defaults (online words, idf^2) a place seen once loses its words to the purge, and labels every
+#: graph holds weigh 0, so the exact-kernel tests below pin these.
+PAPER_KERNEL = ["vocabulary=", "idf_power=0"]
+
+
 def _keyframe(index: int, seed: int, objects: tuple[DetectedObject, ...] = (), count: int = 300) -> Keyframe:
     rng = np.random.default_rng(seed)
     keypoints = rng.uniform(0, 320, size=(count, 2)).astype(np.float32)
@@ -36,7 +42,7 @@ def _keyframe(index: int, seed: int, objects: tuple[DetectedObject, ...] = (), c
 
 
 def test_window_components_and_revisit() -> None:
-    detector = create(["temporal_window=3"])
+    detector = create([*PAPER_KERNEL, "temporal_window=3"])
     chair = (DetectedObject("chair", 0.9, (10, 10, 120, 150)), DetectedObject("tv", 0.8, (180, 20, 300, 100)))
     places = [100, 101, 102, 103, 104, 105, 106, 107]
     for index, place in enumerate(places):
@@ -61,14 +67,15 @@ def test_featureless_keyframes_neither_query_nor_match() -> None:
 
 
 def test_keyframes_without_objects_are_counted_and_still_match() -> None:
-    detector = create(["temporal_window=0"])
+    detector = create([*PAPER_KERNEL, "temporal_window=0"])
     detector.add(_keyframe(0, 5))
     assert detector.add(_keyframe(1, 5))[0].components["wl"] == pytest.approx(1.0)
     assert detector.object_poor_keyframes == 2
 
 
 def test_grakel_backend_gives_the_same_scores() -> None:
-    ours, reference = create(["iterations=3"]), create(["iterations=3", "wl_backend=grakel"])
+    ours = create([*PAPER_KERNEL, "iterations=3"])
+    reference = create([*PAPER_KERNEL, "iterations=3", "wl_backend=grakel"])
     objects = (
         DetectedObject("chair", 0.9, (10, 10, 120, 150)),
         DetectedObject("cup", 0.8, (200, 40, 260, 90)),
@@ -94,6 +101,8 @@ def test_ablations_are_registered_and_config_is_validated() -> None:
     with pytest.raises(ConfigError, match="idf_power"):
         create(["idf_power=2", "wl_backend=grakel"])
     assert create(["idf_power=2"]).kernel.idf_power == 2  # type: ignore[union-attr]
+    defaults = SymbioLCD2Config()
+    assert (defaults.vocabulary, defaults.idf_power, defaults.proposal_threshold) == ("online", 2, 0.0)
     assert SymbioLCD2Config().iterations == 10 and SymbioLCD2Config().graph.margin_px == 25
 
 
