@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +111,7 @@ def run_odometry(
     viewer: RerunViewer | None = None,
     checkpointer: Checkpointer | None = None,
     resume: RunState | None = None,
+    on_frame: Callable[[Frame, TrackResult], None] | None = None,
 ) -> dict[str, Any]:
     """Stream ``dataset`` through ``slam`` (``build_slam``, or ``Slam.from_parts`` for a restored
     run), write the trajectories, loops and metrics to ``out``; returns the figures of ``metrics.json``.
@@ -121,13 +122,15 @@ def run_odometry(
     ``checkpointer`` saves the state every N frames (deleted once the outputs are written);
     ``resume``: the state of a checkpoint (``slam`` must be built from its parts), whose processed
     frames are skipped. If anything stops the run early (including KeyboardInterrupt), what was
-    processed is written first and the exception re-raised.
+    processed is written first and the exception re-raised. ``on_frame`` runs after every frame,
+    outside the run's timings (``eval.bench.long`` samples the run with it).
     """
     with contextlib.ExitStack() as stack:
         folder = out if isinstance(out, RunFolder) else stack.enter_context(run_folder(out))
         return _run_into(
-            folder, dataset, slam, max_frames, progress, tolerance, config, viewer, checkpointer, resume
-        )
+            folder, dataset, slam, max_frames, progress, tolerance, config, viewer, checkpointer, resume,
+            on_frame,
+        )  # fmt: skip
 
 
 def run_folder(
@@ -161,6 +164,7 @@ def _run_into(
     viewer: RerunViewer | None,
     checkpointer: Checkpointer | None,
     resume: RunState | None,
+    on_frame: Callable[[Frame, TrackResult], None] | None = None,
 ) -> dict[str, Any]:
     if viewer is not None:
         attach_viewer(viewer, slam.closing)
@@ -179,6 +183,8 @@ def _run_into(
             viewer.frame(frame, result)
         if checkpointer is not None:
             checkpointer.after_frame(frame, slam.frontend, slam.closing, state)
+        if on_frame is not None:
+            on_frame(frame, result)
 
     try:
         with tqdm(

@@ -76,6 +76,8 @@ class SlamState:
     frontend_failures: int = 0
     frontend_seconds: float = 0.0
     total_seconds: float = 0.0
+    #: Seconds ``Slam.finish`` took (settling the last keyframes, the global bundle adjustment).
+    finish_seconds: float = 0.0
     interrupted: bool = False
     #: Checkpoints written (``--checkpoint-every``), seconds spent writing them, size of the last.
     checkpoints: int = 0
@@ -248,7 +250,8 @@ class Slam:
         if not self._finished:
             start = time.perf_counter()
             self.closing.finish()
-            self.state.total_seconds += time.perf_counter() - start
+            self.state.finish_seconds = time.perf_counter() - start
+            self.state.total_seconds += self.state.finish_seconds
             self._finished = True
         return self.result()
 

@@ -33,7 +33,7 @@ import dataclasses
 import logging
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +41,11 @@ from eval.bench.scenes import parse_seeds, scene_folder
 from eval.components import load_components
 from eval.demo import synthetic_components
 from eval.run import build_slam, run_odometry
+from frontends.base import TrackResult
 from frontends.cli_common import add_json_option, add_set_option, write_json
 from frontends.datasets import open_dataset
 from frontends.errors import ConfigError
+from frontends.types import Frame
 from slam_backend.pipeline import LoopClosing
 from slam_backend.slam import Slam
 
@@ -54,10 +56,17 @@ KEYS = (
 )  # fmt: skip
 
 
-def run_scene(folder: Path, out: Path, mode: str = "full", overrides: Sequence[str] = ()) -> dict[str, Any]:
+def run_scene(
+    folder: Path,
+    out: Path,
+    mode: str = "full",
+    overrides: Sequence[str] = (),
+    on_start: Callable[[Slam], Callable[[Frame, TrackResult], None]] | None = None,
+) -> dict[str, Any]:
     """``full``: the pipeline; ``plain``: odometry only (``symbio run --no-loops``); ``masked``:
     odometry only with the same object detector masking movable objects as the full run.
-    ``overrides``: ``symbio run --set`` items (a key without a section goes to the frontend)."""
+    ``overrides``: ``symbio run --set`` items (a key without a section goes to the frontend).
+    ``on_start(slam)``, if given, returns what runs after every frame (``run_odometry``'s ``on_frame``)."""
     dataset = open_dataset(folder)
     defaults = synthetic_components()
     extra = load_components(None, overrides, {})
@@ -70,7 +79,8 @@ def run_scene(folder: Path, out: Path, mode: str = "full", overrides: Sequence[s
         closing = slam.closing
         masked = LoopClosing(closing.backend, objects=closing.objects, config=closing.config)
         slam = Slam.from_parts(slam.frontend, masked)
-    return run_odometry(dataset, slam, out, progress=False, tolerance=3)
+    on_frame = on_start(slam) if on_start is not None else None
+    return run_odometry(dataset, slam, out, progress=False, tolerance=3, on_frame=on_frame)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
