@@ -148,6 +148,8 @@ class LoopClosingConfig:
     two_view_join: TwoViewJoinConfig = field(default_factory=TwoViewJoinConfig)
     #: Newer keyframes a keyframe waits for before it is used; None: the frontend's ``keyframes_in_flux``.
     settle_keyframes: int | None = None
+    #: Keep keyframe images after loop detection used them (0.9 MB per 640x480 colour keyframe, unbounded).
+    keep_keyframe_images: bool = False
     #: Full bundle adjustment at the end of the stream if a loop was accepted (``slam_backend.global_ba``).
     global_ba: GlobalBundleAdjustmentConfig = field(default_factory=GlobalBundleAdjustmentConfig)
 
@@ -594,10 +596,16 @@ class LoopClosing:
         self._latest_keyframe[keyframe.segment] = keyframe.id
         self._previous = keyframe
         self.counters.seconds["backend"] += time.perf_counter() - start
-        if self.detector is None:
-            return []
-        keyframe = self._with_objects(keyframe)
-        return self._close_loops(keyframe)
+        try:
+            if self.detector is None:
+                return []
+            return self._close_loops(self._with_objects(keyframe))
+        finally:
+            # The object and loop detectors (and the viewer) are done with the image. The frontend,
+            # the run's results and this pipeline share this keyframe object, so one release frees
+            # it for all (docs/slam-runs.md, "Long runs").
+            if not self.config.keep_keyframe_images:
+                keyframe.image = None
 
     def _segment_link(self, previous: Keyframe, first: Keyframe) -> np.ndarray:
         """Sim(3) step from the old segment's last keyframe to the new segment's first at constant

@@ -37,7 +37,7 @@ from frontends.trajectory_io import read_tum
 from frontends.types import DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate
 from lcd.symbiolcd2 import create as create_symbiolcd2
-from slam_backend.pipeline import LoopClosing, LoopRecord
+from slam_backend.pipeline import LoopClosing, LoopClosingConfig, LoopRecord
 from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
 from slam_backend.verify import create as create_verifier
 
@@ -154,6 +154,25 @@ def test_a_revisit_is_found_verified_and_reduces_the_error(
     before = ate([p for _, _, p in closing.frame_poses(corrected=False)], gt)
     after = ate([p for _, _, p in closing.frame_poses(corrected=True)], gt)
     assert after < 0.5 * before, (before, after)
+
+
+def test_keyframe_images_are_released_once_loop_detection_used_them(
+    loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
+) -> None:
+    closing, _, keyframes = loop_run
+    # The detector saw every keyframe's objects (found from its image) and the images are gone:
+    # a long run keeps no 0.9 MB per keyframe.
+    assert closing.detector is not None
+    assert closing.detector.object_poor_keyframes < len(keyframes)  # type: ignore[attr-defined]
+    assert all(k.image is None for k in closing.keyframes)
+    kept = LoopClosing(
+        GtsamPoseGraph(BackendConfig()), None, None, None, LoopClosingConfig(keep_keyframe_images=True)
+    )
+    frame = Frame(0, 0.0, np.zeros((8, 8, 3), np.uint8))
+    keyframe = replace(keyframes[0], image=frame.image)
+    kept.add(TrackResult(0, 0.0, "tracking", keyframe.pose, 0, keyframe), frame)
+    kept.finish()
+    assert kept.keyframes[0].image is not None
 
 
 class FalseLoops:
