@@ -35,7 +35,7 @@ them, in docs/paper-interpretation.md):
 - ``idf_power = 2`` weighs every WL label by the squared idf, over the stored graphs, of the input
   label it descends from (``lcd.wl``): the cosine of TF-IDF label histograms. A plain vertex histogram
   (``idf_power = 0``, the paper's kernel) lets frequent, unspecific words dominate. Online words +
-  p = 2 gave the best raw recall@1 and AUC-PR on every real set (RTAB-Map 0.977 recall@100p,
+  p = 2 gave the best raw recall@1 and AUC-PR on every real set (RTAB-Map 0.955 recall@100p,
   Gardens Point recall@1 0.60 vs 0.315 with tree + p = 0; docs/2026-12-06-wl-idf.md,
   docs/2026-12-06-symbiolcd2-defaults.md).
 - ``threshold`` 0.011 lies above the best false positive of every ``eval.bench_lcd`` set with these
