@@ -76,3 +76,16 @@ def test_bench_long_on_a_short_scene(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert figures["ms_per_frame_ratio_last_to_second_decile"] > 0
     printed = capsys.readouterr().out
     assert "| decile |" in printed and "ms_per_frame_ratio_last_to_second_decile" in printed
+
+
+def test_a_bad_kitti00_file_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "poses.txt"
+    bad.write_text("1 2 3\n")
+    work = tmp_path / "work"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--frames", "20", "--work", str(work), "--kitti00", str(bad)])
+    assert exit_info.value.code == 2
+    assert f"{bad}:1: expected 12 numbers" in capsys.readouterr().err
+    assert not work.exists() or not any(work.iterdir())  # no scene rendered

@@ -46,8 +46,9 @@ from eval.bench.pipeline import run_scene
 from eval.bench.scenes import scene_folder
 from frontends.base import TrackResult
 from frontends.cli_common import add_json_option, add_set_option, write_json
-from frontends.errors import ConfigError
-from frontends.types import Frame
+from frontends.errors import ConfigError, InputFileError
+from frontends.trajectory_io import read_kitti_poses, read_times
+from frontends.types import Frame, Trajectory
 from slam_backend.slam import Slam
 
 DECILES = 10
@@ -244,18 +245,22 @@ def run_long(
     return result, rows
 
 
-def kitti00_posegraph(path: Path, seed: int) -> dict[str, Any]:
+def read_kitti00(path: Path) -> Trajectory:
+    """KITTI poses (with ``<stem>_times.txt`` beside them if there), read before the long run so a
+    bad file is an error at once (``TrajectoryFileError`` naming it)."""
+    times = path.with_name(f"{path.stem}_times.txt")
+    return read_kitti_poses(path, read_times(times) if times.is_file() else None)
+
+
+def kitti00_posegraph(trajectory: Trajectory, name: str, seed: int) -> dict[str, Any]:
     """KITTI 00's ground truth as a monocular Sim(3) pose graph (``symbio posegraph --trajectory PATH
     --format kitti --simulate mono-drift --seed S``): poses, loops, ATE, seconds."""
     from frontends.config import load_config
-    from frontends.trajectory_io import read_kitti_poses, read_times
     from slam_backend.experiment import figures, run_problem
     from slam_backend.posegraph import BackendConfig
     from slam_backend.simulate import MonoDriftConfig, simulate_mono_drift
 
-    times = path.with_name(f"{path.stem}_times.txt")
-    trajectory = read_kitti_poses(path, read_times(times) if times.is_file() else None)
-    problem = simulate_mono_drift(trajectory, MonoDriftConfig(seed=seed), name=f"{path.name} mono-drift")
+    problem = simulate_mono_drift(trajectory, MonoDriftConfig(seed=seed), name=f"{name} mono-drift")
     config = load_config(BackendConfig, None, [f"mode={problem.mode}"])
     start = time.perf_counter()
     result = run_problem(problem, config)
@@ -349,15 +354,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_long_"))
     name = f"{args.trajectory}_{args.seed}_{args.frames}"
+    kitti = None if args.no_kitti00 else (args.kitti00 or default_kitti00())
     try:
+        kitti_poses = read_kitti00(kitti) if kitti is not None else None
         folder = scene_folder(work, args.trajectory, args.seed, args.frames)
         figures, rows = run_long(folder, work / "runs" / name, args.overrides, not args.no_baseline)
-    except ConfigError as error:  # a bad --set, raised by the first run
+    except (ConfigError, InputFileError) as error:  # a bad --set (the first run) or --kitti00 file
         parser.error(str(error))
     figures = {"trajectory": args.trajectory, "seed": args.seed, **figures}
-    kitti = None if args.no_kitti00 else (args.kitti00 or default_kitti00())
-    if kitti is not None:
-        figures.update(kitti00_posegraph(kitti, args.seed))
+    if kitti is not None and kitti_poses is not None:
+        figures.update(kitti00_posegraph(kitti_poses, kitti.name, args.seed))
     print_report(name, figures, rows)
     for failure in check_targets(figures):
         print(f"target missed: {failure}")
