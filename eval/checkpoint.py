@@ -498,7 +498,9 @@ class Checkpointer:
         if done % self.every != 0:
             return
         try:
-            self.save(RunState(frontend, closing, run, frame.index + 1, list(self.dataset.skipped)))
+            # Skips after this frame were met reading ahead; resuming meets them again.
+            skipped = [s for s in self.dataset.skipped if s.index <= frame.index]
+            self.save(RunState(frontend, closing, run, frame.index + 1, skipped))
         except OutputError as exc:
             # Disk full or a folder turned read-only: the previous checkpoint stays valid (its header
             # is the commit point) and the run goes on; a checkpoint is insurance, not an output.

@@ -46,7 +46,7 @@ from frontends.base import TrackResult
 from frontends.cli_common import flat_json
 from frontends.config import load_config
 from frontends.datasets import Dataset
-from frontends.datasets.base import SKIP_CAUSES
+from frontends.datasets.base import SKIP_CAUSES, ReadAhead
 from frontends.errors import display_path
 from frontends.types import Frame
 from slam_backend.pipeline import LoopClosing, LoopClosingConfig, LoopRecord
@@ -170,11 +170,13 @@ def _run_into(
         attach_viewer(viewer, slam.closing)
     state = slam.state
     total = len(dataset) if max_frames is None else min(max_frames, len(dataset))
-    stream: Iterable[Frame] = (
+    # Frames decode in a thread while the previous one is tracked (frontends.datasets.base.ReadAhead).
+    reader = ReadAhead(
         itertools.islice(dataset, max_frames)
         if resume is None
         else checkpoint.remaining(dataset, max_frames, resume)
     )
+    stream: Iterable[Frame] = reader
     if checkpointer is not None:
         stream = checkpointer.track(stream)
 
@@ -197,10 +199,15 @@ def _run_into(
         ) as frames:
             result = slam.run(frames, after_frame)
     except BaseException:
+        reader.close()
+        if not reader.finished:  # what it read ahead was never handed out: those skips are not the run's
+            dataset.forget_skips_after(reader.last_index)
         state.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(state.results), folder.root)
         write_outputs(folder, dataset, slam.finish(), state, tolerance, config or {}, viewer)
         raise
+    finally:
+        reader.close()
     figures = write_outputs(folder, dataset, result, state, tolerance, config or {}, viewer)
     if state.results and all(r.pose is None for r in state.results):
         log.warning(

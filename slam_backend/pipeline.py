@@ -26,6 +26,11 @@ threshold (a raising verifier counts as a rejection with the error as reason; on
 than ``verify_timeout_s`` as a rejection with reason "timeout ..."), and one backend event
 with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
 the final decision; ``loops()`` reports the current decision of every candidate.
+Verification runs on a worker thread while the frontend tracks the next frames
+(``overlap_verification``; pycolmap and OpenCV release the GIL for most of it): a keyframe's loops
+are decided when the next keyframe settles, or at ``finish()``, so the run's decisions do not depend
+on timing. The worker gets shallow copies of the two keyframes, taken when it starts, because the
+frontend re-assigns a keyframe's pose and points while it works.
 
 Settling: a frontend's local bundle adjustment keeps moving its newest keyframes after it hands
 them out (``SettlingFrontend.keyframes_in_flux``, mono-vo: its BA window of 6). A keyframe goes to
@@ -132,6 +137,8 @@ class LoopClosingConfig:
     floor_log_scale_sigma: float = 1e-3
     #: Wall-clock budget (s) of one verification; past it: rejected (docs/2026-12-06-config-evidence.md)
     verify_timeout_s: float = 30.0
+    #: Verify a keyframe's candidates on a thread while later frames track; decided at the next keyframe.
+    overlap_verification: bool = True
     #: Hand the backend's estimates to a ``CorrectableFrontend`` after every accepted loop.
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
@@ -249,6 +256,48 @@ class _Entry:
     deferral: _Deferral | None = None
     #: How the two-view join made the constraint ("" when the verifier's Sim(3) did, or none).
     join: str = ""
+
+
+@dataclass
+class _Pending:
+    """A keyframe's verifications (its own candidates, then retries of deferred ones) running on a
+    worker thread; ``jobs`` are (query, match) snapshots taken when they were handed over."""
+
+    keyframe: Keyframe
+    chosen: list[LoopCandidate]
+    #: (keyframe the retry verifies from, candidate, its deferral) per retry.
+    retries: list[tuple[Keyframe, LoopCandidate, _Deferral]]
+    #: Records of deferred candidates that changed without a retry.
+    closed: list[int]
+    jobs: list[tuple[Keyframe, Keyframe]]
+    #: Per job as the worker finishes it: the verification or what the verifier raised, and seconds.
+    results: list[Verification | Exception] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+    #: Set when the worker could not start (an earlier one still running past its budget).
+    busy: bool = False
+    worker: threading.Thread | None = None
+    #: ``verify_timeout_s``: how long a checkpoint waits for each job still running.
+    budget: float = 30.0
+
+    def run(self, verifier: Verifier) -> None:
+        for query, match in self.jobs:
+            start = time.perf_counter()
+            try:
+                outcome: Verification | Exception = verifier.verify(query, match)
+            except Exception as exc:  # handed to the pipeline's plugin boundary
+                outcome = exc
+            self.seconds.append(time.perf_counter() - start)
+            self.results.append(outcome)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # A checkpoint waits for the worker (the budget still applies when the run decides), so a
+        # resumed run decides from the same answers as an uninterrupted one.
+        while self.worker is not None and self.worker.is_alive():
+            done = len(self.results)
+            self.worker.join(self.budget)
+            if len(self.results) == done:
+                break  # stuck past its budget: the jobs left count as timed out when decided
+        return {**self.__dict__, "worker": None}
 
 
 @dataclass(frozen=True)
@@ -401,6 +450,8 @@ class LoopClosing:
         self._previous: Keyframe | None = None
         #: A verification that ran past its budget and has not returned yet.
         self._late_verification: threading.Thread | None = None
+        #: The last keyframe's verifications, decided when the next keyframe settles or at the end.
+        self._pending: _Pending | None = None
         #: Loops between segments held for support, the segment pairs joined by an accepted loop,
         #: and the odometry steps (with covariances) that PCM's test of held loops runs along.
         self._held: list[_HeldBridge] = []
@@ -455,6 +506,7 @@ class LoopClosing:
         records: list[LoopRecord] = []
         while self._unsettled:
             records += self._add_keyframe(self._unsettled.pop(0))
+        records += self._decide_pending()
         ended = [d.record_index for d in self._deferred]
         for d in list(self._deferred):
             self._records[d.record_index] = self._give_up(d, "the stream ended")
@@ -495,7 +547,7 @@ class LoopClosing:
         assert self.camera is not None
         camera = colmap_camera(self.camera)
         for index, posed in self._frames.items():
-            if posed.observations is None:
+            if posed.observations is None or posed.anchor in adjusted.followers:
                 continue
             segment = self._keyframes[posed.anchor].segment
             initial = posed.pose(adjusted.poses)
@@ -715,13 +767,90 @@ class LoopClosing:
             self.on_keyframe(keyframe, getattr(self.detector, "last_graph", None))
         chosen = [c for c in candidates if self._proposed(c.score) and c.match in self._keyframes]
         chosen = chosen[: self.config.max_verifications]
-        verifications = [self._verify(keyframe, candidate) for candidate in chosen]
+        # The previous keyframe's verifications are decided first: its loops change what the
+        # retries below see (deferred candidates, joined segments), as in a run without overlap.
+        records = self._decide_pending()
+        retries, closed = self._retry_deferred(keyframe, {c.match for c in chosen})
+        self._pending = self._start_verifications(keyframe, chosen, retries, closed)
+        if not self.config.overlap_verification:
+            records += self._decide_pending()
+        return records
+
+    def _start_verifications(
+        self,
+        keyframe: Keyframe,
+        chosen: list[LoopCandidate],
+        retries: list[tuple[Keyframe, LoopCandidate, _Deferral]],
+        closed: list[int],
+    ) -> _Pending:
+        """Hand the keyframe's verifications to a worker thread (``_Pending``)."""
+        # Shallow copies: the frontend re-assigns a keyframe's pose and points while the worker reads.
+        jobs = [(replace(keyframe), replace(self._keyframes[c.match])) for c in chosen]
+        jobs += [(replace(query), replace(self._keyframes[c.match])) for query, c, _ in retries]
+        pending = _Pending(keyframe, chosen, retries, closed, jobs, budget=self.config.verify_timeout_s)
+        if not jobs or self.verifier is None:
+            return pending
+        late = self._late_verification
+        if late is not None:
+            late.join(self.config.verify_timeout_s)
+            if late.is_alive():
+                pending.busy = True
+                return pending
+            self._late_verification = None
+        # A daemon thread: a verifier that never returns cannot keep the process alive at exit.
+        pending.worker = threading.Thread(
+            target=pending.run, args=(self.verifier,), name=f"verify keyframe {keyframe.id}", daemon=True
+        )
+        pending.worker.start()
+        return pending
+
+    def _pending_verifications(self, pending: _Pending) -> list[Verification]:
+        """Wait for the worker (each job within ``verify_timeout_s``) and turn its answers into
+        verifications: a raise or a late answer rejects that candidate only."""
+        budget = self.config.verify_timeout_s
+        if pending.worker is not None:
+            while pending.worker.is_alive():
+                done = len(pending.results)
+                pending.worker.join(budget)
+                if pending.worker.is_alive() and len(pending.results) == done:
+                    self._late_verification = pending.worker  # no answer within the budget
+                    break
+        self.counters.seconds["verifier"] += sum(pending.seconds)
+        verifications = []
+        for position, (query, match) in enumerate(pending.jobs):
+            if self.verifier is None:
+                verifications.append(Verification(query.id, match.id, False, "no verifier"))
+            elif pending.busy:
+                why = "the verifier is still busy with an earlier candidate"
+                verifications.append(self._timed_out(query.id, match.id, why))
+            elif position >= len(pending.results) or pending.seconds[position] > budget:
+                verifications.append(self._timed_out(query.id, match.id, f"no answer within {budget:g} s"))
+            elif isinstance(pending.results[position], Exception):
+                exc = pending.results[position]
+                self.counters.verifier_failures += 1
+                log.warning("verifier %s failed on %d -> %d: %r", self.verifier.name, query.id, match.id, exc)
+                verifications.append(Verification(query.id, match.id, False, f"verifier error: {exc!r}"))
+            else:
+                verifications.append(pending.results[position])  # type: ignore[arg-type]
+        return verifications
+
+    def _decide_pending(self) -> list[LoopRecord]:
+        """Decide the pending keyframe's verified candidates: two-view joins, the backend, records."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return []
+        keyframe = pending.keyframe
+        verifications = self._pending_verifications(pending)
+        own, later = verifications[: len(pending.chosen)], verifications[len(pending.chosen) :]
         # The detector's candidates get new records; retries of deferred ones update theirs.
         entries: list[_Entry] = [
             _Entry(c, v, len(self._records) + i)
-            for i, (c, v) in enumerate(zip(chosen, verifications, strict=True))
+            for i, (c, v) in enumerate(zip(pending.chosen, own, strict=True))
         ]
-        retries, closed = self._retry_deferred(keyframe, {c.match for c in chosen})
+        retries = [
+            _Entry(c, v, d.record_index, d) for (_, c, d), v in zip(pending.retries, later, strict=True)
+        ]
+        closed = pending.closed
         entries = [self._join(entry) for entry in entries + retries]
         if not entries:
             return self._report(closed)
@@ -903,11 +1032,13 @@ class LoopClosing:
         )
         return replace(entry, verification=joined, join=note)
 
-    def _retry_deferred(self, keyframe: Keyframe, proposed: set[int]) -> tuple[list[_Entry], list[int]]:
+    def _retry_deferred(
+        self, keyframe: Keyframe, proposed: set[int]
+    ) -> tuple[list[tuple[Keyframe, LoopCandidate, _Deferral]], list[int]]:
         """The retries of deferred candidates now that ``keyframe`` settled ("Deferred loops"),
         and the records of those that changed without one; ``proposed``: the matches the detector
         proposed for ``keyframe`` itself."""
-        retries: list[_Entry] = []
+        retries: list[tuple[Keyframe, LoopCandidate, _Deferral]] = []
         closed: list[int] = []
         for d in list(self._deferred):
             closed.append(d.record_index)
@@ -941,7 +1072,7 @@ class LoopClosing:
                 continue
             closed.pop()  # its record changes with the retry's outcome
             candidate = LoopCandidate(chosen.id, d.match, d.score, {})
-            retries.append(_Entry(candidate, self._verify(chosen, candidate), d.record_index, d))
+            retries.append((chosen, candidate, d))
         return retries, closed
 
     def _give_up(self, deferral: _Deferral, why: str) -> LoopRecord:
@@ -991,55 +1122,6 @@ class LoopClosing:
         to_segment = np.linalg.inv(self._segment_frame[segment])
         estimates = self._sim3_estimates()
         return {k: to_segment @ estimates[k] for k, kf in self._keyframes.items() if kf.segment == segment}
-
-    def _verify(self, keyframe: Keyframe, candidate: LoopCandidate) -> Verification:
-        if self.verifier is None:
-            return Verification(candidate.query, candidate.match, False, "no verifier")
-        start = time.perf_counter()
-        try:
-            return self._verify_in_budget(self.verifier, keyframe, self._keyframes[candidate.match])
-        except Exception as exc:  # plugin boundary: a raising verifier rejects this candidate only
-            self.counters.verifier_failures += 1
-            log.warning(
-                "verifier %s failed on %d -> %d: %r",
-                self.verifier.name,
-                candidate.query,
-                candidate.match,
-                exc,
-            )
-            return Verification(candidate.query, candidate.match, False, f"verifier error: {exc!r}")
-        finally:
-            self.counters.seconds["verifier"] += time.perf_counter() - start
-
-    def _verify_in_budget(self, verifier: Verifier, query: Keyframe, match: Keyframe) -> Verification:
-        """``verifier.verify`` on a worker thread, given ``verify_timeout_s``; raises what it raises."""
-        budget = self.config.verify_timeout_s
-        late = self._late_verification
-        if late is not None:
-            late.join(budget)
-            if late.is_alive():
-                return self._timed_out(
-                    query.id, match.id, "the verifier is still busy with an earlier candidate"
-                )
-            self._late_verification = None
-        outcome: list[Verification | Exception] = []
-
-        def work() -> None:
-            try:
-                outcome.append(verifier.verify(query, match))
-            except Exception as exc:  # handed to the caller's plugin boundary
-                outcome.append(exc)
-
-        # A daemon thread: a verifier that never returns cannot keep the process alive at exit.
-        worker = threading.Thread(target=work, name=f"verify {query.id}->{match.id}", daemon=True)
-        worker.start()
-        worker.join(budget)
-        if worker.is_alive():
-            self._late_verification = worker
-            return self._timed_out(query.id, match.id, f"no answer within {budget:g} s")
-        if isinstance(outcome[0], Exception):
-            raise outcome[0]
-        return outcome[0]
 
     def _timed_out(self, query: int, match: int, why: str) -> Verification:
         self.counters.verifier_timeouts += 1

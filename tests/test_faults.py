@@ -240,7 +240,8 @@ def test_the_budget_must_be_positive() -> None:
 
 def test_a_verifier_past_its_budget_rejects_the_candidate_with_reason_timeout() -> None:
     verifier = Stuck()
-    config = LoopClosingConfig(verify_timeout_s=0.5)  # once released, a late call returns well within this
+    # Once released, a late call returns well within this; decided when the keyframe is added.
+    config = LoopClosingConfig(verify_timeout_s=0.5, overlap_verification=False)
     closing = LoopClosing(GtsamPoseGraph(BackendConfig()), Previous(), None, verifier, config)  # type: ignore[arg-type]
 
     def add(k: int) -> None:
@@ -261,6 +262,40 @@ def test_a_verifier_past_its_budget_rejects_the_candidate_with_reason_timeout() 
     assert closing.loops()[-1].reason == "answered"
     assert closing.counters.verifier_timeouts == 2 and closing.counters.verifier_failures == 0
     assert len(closing.frame_poses(corrected=True)) == 4
+
+
+def test_overlapped_verification_is_decided_at_the_next_keyframe_with_the_same_budget() -> None:
+    """The default: a keyframe's candidates are verified on a worker while later frames track, and
+    decided when the next keyframe comes (or at finish); the budget and the timeouts hold as above."""
+    verifier = Stuck()
+    closing = LoopClosing(
+        GtsamPoseGraph(BackendConfig()),
+        Previous(),
+        None,
+        verifier,
+        LoopClosingConfig(verify_timeout_s=0.5),  # type: ignore[arg-type]
+    )
+
+    def add(k: int) -> None:
+        pose = np.eye(4)
+        pose[0, 3] = 0.1 * k
+        closing.add(TrackResult(k, float(k), "tracking", pose, 0, Keyframe(k, k, float(k), pose)))
+
+    add(0)
+    add(1)  # 1 -> 0 handed to the worker, not decided yet
+    assert closing.loops() == [] and verifier.calls == 1
+    add(2)  # 1 -> 0 decided (past its budget); 2 -> 1 cannot start while the stuck call runs
+    assert [r.reason for r in closing.loops()] == ["timeout: no answer within 0.5 s"]
+    verifier.release.set()
+    add(3)  # 2 -> 1 decided as busy; 3 -> 2 runs now
+    closing.finish()  # and is decided here
+    assert [r.reason for r in closing.loops()] == [
+        "timeout: no answer within 0.5 s",
+        "timeout: the verifier is still busy with an earlier candidate",
+        "answered",
+    ]
+    assert verifier.calls == 2
+    assert closing.counters.verifier_timeouts == 2
 
 
 # --- the full pipeline: mono-vo, symbiolcd2, pycolmap, gtsam -------------------------------------------

@@ -249,6 +249,7 @@ def test_failing_plugins_cost_one_keyframe_each(
         verifying.add(
             TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
         )
+    verifying.finish()  # the last keyframe's verifications are decided here (overlap_verification)
     assert verifying.counters.verifier_failures == 5
     assert all(not r.verified and "verifier bug" in r.reason for r in verifying.loops())
 

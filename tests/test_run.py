@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -282,3 +284,32 @@ def test_mono_vo_smoke(small_loop_scene: Path, tmp_path: Path) -> None:
     assert metrics["frames_tracked"] + metrics["tracking_lost"] <= 120
     for name in (TRAJECTORY_FILE, KEYFRAMES_FILE):
         assert (out / name).is_file()
+
+
+def test_an_interrupted_run_counts_no_skip_the_reader_met_ahead_of_it(
+    small_loop_scene: Path, tmp_path: Path
+) -> None:
+    """Frames decode ahead of tracking (frontends.datasets.base.ReadAhead): broken frames the reader
+    met after the last frame handed to the run are not the run's skips."""
+    scene = tmp_path / "scene"
+    shutil.copytree(small_loop_scene, scene)
+    dataset = open_dataset(scene)
+    for index in (42, 43):
+        dataset.entries[index].path.write_bytes(b"not an image")
+
+    class SlowFailingFrontend(FailingFrontend):
+        def track(self, frame: Frame) -> TrackResult:
+            if frame.index == 40:
+                time.sleep(1.0)  # the reader meanwhile fills its queue: 41, then 44 past the broken two
+            return super().track(frame)
+
+    frontend = SlowFailingFrontend(scene, {40}, KeyboardInterrupt)
+    with pytest.raises(KeyboardInterrupt):
+        run_odometry(
+            dataset,
+            Slam(dataset.camera, frontend=frontend, loop_detector=None),
+            tmp_path / "run",
+            progress=False,
+        )
+    metrics = json.loads((tmp_path / "run" / METRICS_FILE).read_text())
+    assert metrics["frames"] == 40 and metrics["frames_skipped"] == 0

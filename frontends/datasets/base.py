@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import queue
+import threading
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -267,6 +269,10 @@ class Dataset:
             self._skip(index, entry.where(), skipped.reason, skipped.cause)
             return None
 
+    def forget_skips_after(self, index: int) -> None:
+        """Drop the records of frames after ``index`` (read ahead, never reached by the run)."""
+        self.skipped[:] = [s for s in self.skipped if s.index <= index]  # in place: wrappers share it
+
     def _skip(self, index: int, where: str, reason: str, cause: str) -> None:
         if self.strict:
             raise DatasetError(where, reason)
@@ -412,3 +418,79 @@ def check_listed_images_exist(entries: Sequence[ImageEntry], strict: bool) -> No
         missing[0].where(),
         display_path(missing[0].path),
     )
+
+
+class ReadAhead(Iterator[Frame]):
+    """``frames`` read by a background thread up to ``depth`` frames ahead of the consumer.
+
+    Decoding a 640x480 PNG takes ~10 ms; OpenCV releases the GIL while it decodes, so on two cores
+    the next frame decodes while this one is tracked. Frames come out in order, and an exception
+    of the reader comes out where it happened in the sequence. ``close()`` (or the end of a
+    ``with``) stops the reader; frames it read ahead are dropped, and ``last_index`` (the index
+    of the last frame handed out, -1 before the first) tells what the consumer reached, so a
+    dataset's ``skipped`` can be cut back to it (``Dataset.forget_skips_after``)."""
+
+    _END = object()
+
+    def __init__(self, frames: Iterable[Frame], depth: int = 2) -> None:
+        if depth < 1:
+            raise ValueError("read-ahead depth must be >= 1")
+        self._source = iter(frames)
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._done = False
+        #: Index of the last frame handed out (-1 before the first).
+        self.last_index = -1
+        #: The source ended or raised, and that was handed out.
+        self.finished = False
+        self._thread = threading.Thread(target=self._read, name="symbio-read-ahead", daemon=True)
+        self._thread.start()
+
+    def _put(self, item: Any) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _read(self) -> None:
+        try:
+            for frame in self._source:
+                if not self._put(frame):
+                    return
+        except BaseException as exc:  # handed to the consumer at this point of the sequence
+            self._put(exc)
+            return
+        self._put(self._END)
+
+    def __iter__(self) -> ReadAhead:
+        return self
+
+    def __next__(self) -> Frame:
+        if self._done:
+            raise StopIteration
+        item = self._queue.get()
+        if item is self._END:
+            self._done = self.finished = True
+            self._thread.join()
+            raise StopIteration
+        if isinstance(item, BaseException):
+            self._done = self.finished = True
+            self._thread.join()
+            raise item
+        self.last_index = item.index
+        return item
+
+    def close(self) -> None:
+        """Stop the reader thread and wait for it (a frame being decoded finishes first)."""
+        self._done = True
+        self._stop.set()
+        self._thread.join()
+
+    def __enter__(self) -> ReadAhead:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
