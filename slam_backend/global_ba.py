@@ -21,7 +21,13 @@ local bundle adjustment). Gauge: a weak prior on every keyframe's start (see ``_
 
 Afterwards each keyframe's Sim(3) is its adjusted pose with the scale that maps its ``points3d``
 onto the adjusted points (median distance ratio), so frames posed relative to a keyframe (in its
-units) follow it. A keyframe without points keeps the pose graph's estimate.
+units) follow it.
+
+Bounds: keyframes mapping under ``weak_keyframe_share`` of the median keyframe's points (where
+tracking degrades before a loss; a keyframe without points) are left out and take the correction of
+their segment's nearest adjusted keyframe; above ``max_observations`` an evenly spaced share of the
+points is adjusted, so time and memory do not grow with the map's density
+(docs/2026-12-06-long-runs.md).
 """
 
 from __future__ import annotations
