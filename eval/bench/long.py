@@ -7,8 +7,8 @@ A synthetic 640x480 scene of ``--frames`` frames at 30 fps (``symbio synth``, ca
 pycolmap, gtsam PCM + GNC), sampled after every frame: wall and CPU time, the stage timers of the
 frontend and of loop closing (``loops.verifier`` is the verification worker's time, which overlaps
 tracking: ``loop_closing.overlap_verification``), keyframes and map points; a thread reads the
-resident set size every 50 ms, so the end-of-run bundle adjustment's peak is seen too. A second run without loop closing,
-with the same movable-object masks, gives the baseline ATE ("masked no-loops").
+resident set size every 50 ms, so the end-of-run bundle adjustment's peak is seen too. A second run
+without loop closing, with the same movable-object masks, gives the baseline ATE ("masked no-loops").
 
 Printed: per decile of the frames, ms per frame (wall, CPU and by stage), keyframes, map points and
 RSS at its end; then ATE before / after / masked no-loops, loops accepted / false, run and end-of-run
