@@ -289,14 +289,19 @@ class _Pending:
             self.seconds.append(time.perf_counter() - start)
             self.results.append(outcome)
 
-    def __getstate__(self) -> dict[str, Any]:
-        # A checkpoint waits for the worker (the budget still applies when the run decides), so a
-        # resumed run decides from the same answers as an uninterrupted one.
+    def wait(self) -> bool:
+        """Wait for the worker while each job answers within ``budget``; whether it is stuck."""
         while self.worker is not None and self.worker.is_alive():
             done = len(self.results)
             self.worker.join(self.budget)
-            if len(self.results) == done:
-                break  # stuck past its budget: the jobs left count as timed out when decided
+            if self.worker.is_alive() and len(self.results) == done:
+                return True
+        return False
+
+    def __getstate__(self) -> dict[str, Any]:
+        # A checkpoint waits for the worker (a stuck job counts as timed out when decided), so a
+        # resumed run decides from the same answers as an uninterrupted one.
+        self.wait()
         return {**self.__dict__, "worker": None}
 
 
@@ -807,14 +812,9 @@ class LoopClosing:
     def _pending_verifications(self, pending: _Pending) -> list[Verification]:
         """Wait for the worker (each job within ``verify_timeout_s``) and turn its answers into
         verifications: a raise or a late answer rejects that candidate only."""
-        budget = self.config.verify_timeout_s
-        if pending.worker is not None:
-            while pending.worker.is_alive():
-                done = len(pending.results)
-                pending.worker.join(budget)
-                if pending.worker.is_alive() and len(pending.results) == done:
-                    self._late_verification = pending.worker  # no answer within the budget
-                    break
+        budget = pending.budget
+        if pending.wait():
+            self._late_verification = pending.worker  # no answer within the budget
         self.counters.seconds["verifier"] += sum(pending.seconds)
         verifications = []
         for position, (query, match) in enumerate(pending.jobs):

@@ -425,10 +425,10 @@ class ReadAhead(Iterator[Frame]):
 
     Decoding a 640x480 PNG takes ~10 ms; OpenCV releases the GIL while it decodes, so on two cores
     the next frame decodes while this one is tracked. Frames come out in order, and an exception
-    of the reader comes out where it happened in the sequence. ``close()`` (or the end of a
-    ``with``) stops the reader; frames it read ahead are dropped, and ``last_index`` (the index
-    of the last frame handed out, -1 before the first) tells what the consumer reached, so a
-    dataset's ``skipped`` can be cut back to it (``Dataset.forget_skips_after``)."""
+    of the reader comes out where it happened in the sequence. ``close()`` stops the reader;
+    frames it read ahead are dropped, and ``last_index`` (the index of the last frame handed out,
+    -1 before the first) tells what the consumer reached, so a dataset's ``skipped`` can be cut
+    back to it (``Dataset.forget_skips_after``)."""
 
     _END = object()
 
@@ -488,9 +488,3 @@ class ReadAhead(Iterator[Frame]):
         self._done = True
         self._stop.set()
         self._thread.join()
-
-    def __enter__(self) -> ReadAhead:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
