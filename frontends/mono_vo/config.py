@@ -47,8 +47,12 @@ class InitConfig:
     fast_motion_stable_frames: int = 2
     #: Reprojection error (px) of a triangulated point (sqrt of chi2(2 dof, 95 %) = 2.45).
     max_reprojection_px: float = 2.45
-    #: Replace the reference frame after this many frames without an initialisation.
-    max_reference_age: int = 30
+    #: Replace the reference after this many frames; 0: only once its matches run out (ORB-SLAM's rule)
+    max_reference_age: int = 0
+
+    def __post_init__(self) -> None:
+        if self.max_reference_age < 0:
+            raise ConfigError("init: max_reference_age must be >= 0 (0: the reference ages with its matches)")
 
 
 @dataclass(frozen=True)

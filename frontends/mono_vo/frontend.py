@@ -5,7 +5,9 @@ the next frame with ``prefetch``); then, by state,
 
 * initialising: two-view initialisation against a reference frame (``initializer``). Success
   makes the reference and the current frame keyframes 0 and 1 of the segment, with the
-  triangulated points as the first map points and a two-view bundle adjustment.
+  triangulated points as the first map points and a two-view bundle adjustment. The frames seen
+  since the reference are then posed against that map (every other one kept once there are more
+  than ``backfill_frames``: a slow camera keeps one reference for hundreds of frames).
 * tracking: pose from the local map (``tracker``). A frame becomes a keyframe when it tracks less
   than ``tracked_ratio`` of the last keyframe's points or ``max_interval`` has passed; the keyframe
   adds its observations, triangulates new points with its newest neighbours that have a baseline
@@ -154,6 +156,10 @@ class MonoVo:
             if reference is not None:
                 self._keep_unposed([p for p in self.pending if p[0] < reference.index])
                 self.pending = [p for p in self.pending if p[0] >= reference.index]
+            if len(self.pending) > self.config.relocalisation.backfill_frames + 1:
+                # A slow camera keeps one reference for hundreds of frames: every other frame is kept
+                # (memory and the backfill stay bounded); the others stay unposed ("initialising").
+                self.pending = self.pending[::2]
             return self._result(frame, "initialising")
         self._check_essential_share(init)
         reference_frame = Frame(

@@ -9,7 +9,9 @@ of both cameras, reproject within 2.45 px and see a parallax; the best must clea
 runner-up, have enough points and a median parallax of at least 1 deg, and its direction of motion
 must agree with the best hypotheses of the frames just before (``stable_frames`` in a row: the
 camera moves smoothly, a poorly determined translation does not). Otherwise the frame is rejected
-and the next one tried; after too few matches or too many tries the reference moves on. When a
+and the next one tried; once too few matches are left the reference moves on (ORB-SLAM's rule; a
+frame count would be frame-rate dependent: a slow camera at 30 frames/s needs more than 30 frames
+for 1 deg of parallax, docs/2026-12-06-slow-initialisation.md). When a
 reference ran out of matches before ``stable_frames`` attempts (fast motion: no reference lives
 that long), the next ones need only ``fast_motion_stable_frames`` agreeing frames.
 
@@ -84,7 +86,8 @@ class Initializer:
         self, index: int, timestamp: float, features: Features, image: np.ndarray
     ) -> Initialisation | None:
         reference = self.reference
-        if reference is None or index - reference.index > self.settings.max_reference_age:
+        age = self.settings.max_reference_age
+        if reference is None or (age > 0 and index - reference.index > age):
             self._set_reference(index, timestamp, features, image)
             return None
         ref_idx, cur_idx = match_descriptors(
