@@ -8,7 +8,7 @@ from typing import Any
 
 from frontends.cli_common import add_json_option, print_figures, write_json
 from frontends.config import load_config
-from frontends.synth.world import TRAJECTORY_KINDS, SynthConfig
+from frontends.synth.world import LAYOUTS, TRAJECTORY_KINDS, SynthConfig
 
 
 def add_parser(subparsers: Any) -> None:
@@ -19,7 +19,14 @@ def add_parser(subparsers: Any) -> None:
         "people) seen along a camera path, in the TUM RGB-D layout with ground-truth poses, object boxes "
         "and loop pairs. The same config and seed give byte-identical files.",
     )
-    parser.add_argument("--trajectory", choices=TRAJECTORY_KINDS, help="camera path (default: loop)")
+    parser.add_argument(
+        "--trajectory", choices=TRAJECTORY_KINDS, help="camera path (default: loop; hall for --layout bays)"
+    )
+    parser.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        help="one room (default), or a hall of identically textured bays with different objects",
+    )
     parser.add_argument("--seed", type=int, help="random seed of the whole scene (default: 0)")
     parser.add_argument("--frames", type=int, help="number of frames (default: 600, 20 s at 30 fps)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
@@ -48,13 +55,13 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = list(args.overrides)
     # Explicit flags win over --config and --set.
-    for key in ("trajectory", "seed", "frames"):
+    for key in ("layout", "trajectory", "seed", "frames"):
         value = getattr(args, key)
         if value is not None:
             overrides.append(f"{key}={value}")
     config = load_config(SynthConfig, args.config, overrides)
     figures = write_scene(config, args.out, progress=not args.no_progress, contact_sheet=args.contact_sheet)
-    print(f"synth: wrote a {config.trajectory} scene (seed {config.seed}) to {args.out}")
+    print(f"synth: wrote a {config.layout} {config.trajectory} scene (seed {config.seed}) to {args.out}")
     print_figures(figures)
     if args.contact_sheet is not None:
         print(f"  contact sheet: {args.contact_sheet}")

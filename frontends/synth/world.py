@@ -18,6 +18,12 @@ look identical: the perceptual aliasing a semantic loop detector must cope with.
 ("person") walk back and forth in lanes between the wall objects and the camera path; the
 detector is expected to drop them.
 
+Bays layout (``layout: bays``): a hall of ``bays`` bays in a row along x, every bay with the SAME
+north-wall, south-wall, floor and ceiling textures (one texture each, repeated), so only the objects
+tell the bays apart: each bay packs both long walls with floor objects, table items and wall-mounted
+objects above them, drawn from its own seeded Generator. People walk across the hall near its end
+walls. Seen along the ``hall`` camera path.
+
 Ground-truth loops (``SynthConfig.loop_labels``, overridable as ``loop_labels.<field>``): frames at
 least 3 s apart whose views share at least 30 % of their static surface points (rendered depth),
 after the camera looked away or went 2 m away (``frontends.synth.covisibility``).
@@ -38,14 +44,24 @@ from frontends.errors import ConfigError
 from frontends.synth.covisibility import CovisibilityLabelConfig
 from frontends.types import CameraIntrinsics
 
-TrajectoryKind = Literal["loop", "figure8", "out-and-back", "none"]
-TRAJECTORY_KINDS: tuple[TrajectoryKind, ...] = ("loop", "figure8", "out-and-back", "none")
+TrajectoryKind = Literal["loop", "figure8", "out-and-back", "none", "hall"]
+TRAJECTORY_KINDS: tuple[TrajectoryKind, ...] = ("loop", "figure8", "out-and-back", "none", "hall")
+LayoutKind = Literal["room", "bays"]
+LAYOUTS: tuple[LayoutKind, ...] = ("room", "bays")
+#: The config fields of the bays layout (``scene.json`` leaves them out while they hold their defaults).
+BAYS_FIELDS = ("layout", "bays", "bay_size")
 
 #: Distance from the walls to the camera path at full path scale (m): the wall objects (<= 1.15 m
 #: deep) and the person lanes (1.35 m) fit in between.
 WALL_CLEARANCE = 2.2
 #: Distance of the person lanes from the long walls (m).
 PERSON_LANE = 1.35
+#: Most bays of the bays layout, and the smallest bay (length, hall width, height; m): the hall
+#: path's lanes and turns need the width, the packed wall objects the length.
+MAX_BAYS = 12
+MIN_BAY_SIZE = (2.5, 4.4, 2.2)
+#: Distance of the bays layout's person lanes (across the hall) from its end walls (m).
+HALL_PERSON_LANE = 0.7
 
 
 @dataclass(frozen=True)
@@ -66,6 +82,13 @@ class SynthConfig:
     cy: float = 239.5
     #: Room extent along x, y and its height (m).
     room_size: tuple[float, float, float] = (9.0, 7.0, 2.8)
+    #: Place: one room, or a hall of ``bays`` bays along x with identical textures (``hall`` path).
+    layout: LayoutKind = "room"
+    #: Number of bays of the bays layout (each with its own objects).
+    bays: int = 3
+    #: One bay's length along x, the hall's width along y and its height (m).
+    bay_size: tuple[float, float, float] = (3.5, 6.0, 2.8)
+    #: Static objects of the room layout (the bays layout packs each bay's walls instead).
     static_objects: int = 14
     movable_objects: int = 2
     #: Target mean camera speed (m/s); met while the path scale is within its clamp range.
@@ -108,11 +131,25 @@ class SynthConfig:
             f"room_size must be >= {2 * WALL_CLEARANCE + 1} m wide and long and >= 2.2 m high": (
                 min(self.room_size[:2]) >= 2 * WALL_CLEARANCE + 1 and self.room_size[2] >= 2.2
             ),
-            "camera_height must be inside the room": 0.3 <= self.camera_height <= self.room_size[2] - 0.3,
+            "camera_height must be inside the room": 0.3 <= self.camera_height <= self.ceiling - 0.3,
+            f"bays must be in [2, {MAX_BAYS}]": 2 <= self.bays <= MAX_BAYS,
+            f"bay_size must be >= {MIN_BAY_SIZE} m (length, width, height)": all(
+                size >= least for size, least in zip(self.bay_size, MIN_BAY_SIZE, strict=True)
+            ),
+            # One way only: ``--set`` applies one key at a time, so layout=bays must come first; the
+            # other way (bays needs hall) is checked when the camera path is made.
+            "trajectory hall needs layout bays (set layout first)": (
+                self.trajectory != "hall" or self.layout == "bays"
+            ),
         }
         failed = [message for message, ok in checks.items() if not ok]
         if failed:
             raise ConfigError(f"synth config: {'; '.join(failed)}")
+
+    @property
+    def ceiling(self) -> float:
+        """Ceiling height of the place (m)."""
+        return self.bay_size[2] if self.layout == "bays" else self.room_size[2]
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -149,6 +186,12 @@ TABLE_ITEMS = (
 )
 PERSON = ObjectClass("person", (0.45, 0.28, 1.7), "floor")
 ITEMS_PER_TABLE = 4
+#: The bays layout packs each bay wall with floor objects (drawn with these weights), table items
+#: and, above them, wall-mounted ones, leaving this margin (m) at the bay ends.
+BAY_FLOOR_CLASSES = (TABLE, *(c for c in FLOOR_AND_WALL_CLASSES if c.mount == "floor"))
+BAY_FLOOR_WEIGHTS = (0.4, 0.2, 0.2, 0.1, 0.1)
+BAY_WALL_CLASSES = tuple(c for c in FLOOR_AND_WALL_CLASSES if c.mount == "wall")
+BAY_MARGIN = 0.15
 
 
 @dataclass(frozen=True)
@@ -324,12 +367,14 @@ def texture_pyramid(texture: np.ndarray, shade: float) -> tuple[np.ndarray, ...]
 
 
 def build_world(config: SynthConfig) -> World:
-    """The room, its objects and every texture, all from ``config.seed``."""
+    """The room (or hall of bays), its objects and every texture, all from ``config.seed``."""
+    if config.layout == "bays":
+        return _build_bays(config)
     size_x, size_y, size_z = config.room_size
     room = _room_surfaces(config)
     rng = np.random.default_rng([config.seed, 1])
     static = _place_static_objects(config, rng)
-    movable = _place_people(config, rng, first_instance=len(static) + 1)
+    movable = _place_people(config, rng, len(static) + 1, (size_x, size_y))
     objects = static + movable
     labels = sorted({obj.label for obj in objects})
     classes = {c.label: c for c in (*FLOOR_AND_WALL_CLASSES, TABLE, *TABLE_ITEMS, PERSON)}
@@ -455,8 +500,10 @@ def _with_instance(obj: WorldObject, instance: int) -> WorldObject:
     )
 
 
-def _place_people(config: SynthConfig, rng: np.random.Generator, first_instance: int) -> list[WorldObject]:
-    sx, sy, _ = config.room_size
+def _place_people(
+    config: SynthConfig, rng: np.random.Generator, first_instance: int, floor: tuple[float, float]
+) -> list[WorldObject]:
+    sx, sy = floor
     people = []
     for k in range(config.movable_objects):
         side = 1.0 if k % 2 == 0 else -1.0
@@ -471,6 +518,178 @@ def _place_people(config: SynthConfig, rng: np.random.Generator, first_instance:
                 (x0, y0, PERSON.size[2] / 2),
                 PERSON.size,
                 0.0 if side > 0 else math.pi,
+                movable=True,
+                amplitude=amplitude,
+                period=float(rng.uniform(7.0, 11.0)),
+                phase=float(rng.uniform(0, 2 * math.pi)),
+            )
+        )
+    return people
+
+
+def hall_size(config: SynthConfig) -> tuple[float, float, float]:
+    """Extent of the bays layout's hall along x, y and its height (m)."""
+    length, width, height = config.bay_size
+    return (config.bays * length, width, height)
+
+
+def bay_of(config: SynthConfig, x: float) -> int:
+    """Index of the bay (0 at the west end) that contains ``x``, clamped to the hall."""
+    length = config.bay_size[0]
+    return min(config.bays - 1, max(0, math.floor((x + config.bays * length / 2) / length)))
+
+
+def _build_bays(config: SynthConfig) -> World:
+    """The hall: every bay repeats the same wall, floor and ceiling textures; each has its own objects."""
+    size = hall_size(config)
+    room = _bay_surfaces(config)
+    static: list[WorldObject] = []
+    for bay in range(config.bays):
+        static += _pack_bay(config, bay)
+    static = [_with_instance(obj, k + 1) for k, obj in enumerate(static)]
+    rng = np.random.default_rng([config.seed, 1])
+    movable = _place_hall_people(config, rng, len(static) + 1)
+    objects = static + movable
+    labels = sorted({obj.label for obj in objects})
+    classes = {c.label: c for c in (*FLOOR_AND_WALL_CLASSES, TABLE, *TABLE_ITEMS, PERSON)}
+    models = {label: _cuboid_faces(classes[label], config) for label in labels}
+    return World(size, room, tuple(objects), models)
+
+
+def _bay_surfaces(config: SynthConfig) -> tuple[Surface, ...]:
+    """Each bay's north wall, south wall, floor and ceiling (the same four textures in every bay),
+    then the two end walls (one texture)."""
+    length, width, height = config.bay_size
+    total = config.bays * length
+    x, y, z = np.eye(3)
+    density = config.wall_texels_per_m
+    # (texture width, height, texels/m, shape density) of the textures every bay repeats, the end walls'.
+    paints = (
+        (length, height, density, 1.0),
+        (length, height, density, 1.0),
+        (length, width, density * 2 / 3, 0.8),
+        (length, width, density / 2, 0.4),
+        (width, height, density, 1.0),
+    )
+    textures = [
+        paint_texture(np.random.default_rng([config.seed, 5, index]), w, h, texels, shapes)
+        for index, (w, h, texels, shapes) in enumerate(paints)
+    ]
+    # (texture, centre offset from the bay centre, inward normal, right, half width, half height, shade)
+    bay_specs = (
+        (0, (0, width / 2, height / 2), -y, x, length / 2, height / 2, 0.95),
+        (1, (0, -width / 2, height / 2), y, -x, length / 2, height / 2, 0.9),
+        (2, (0, 0, 0), z, x, length / 2, width / 2, 0.85),
+        (3, (0, 0, height), -z, x, length / 2, width / 2, 0.7),
+    )
+    pyramids = {
+        (index, shade): texture_pyramid(textures[index], shade)
+        for index, *_, shade in (*bay_specs, (4, 0.85), (4, 0.8))
+    }
+    surfaces = []
+    for bay in range(config.bays):
+        bay_centre = np.array([-total / 2 + (bay + 0.5) * length, 0.0, 0.0])
+        for index, offset, normal, right, half_w, half_h, shade in bay_specs:
+            corners = quad(bay_centre + offset, normal, right, half_w, half_h)
+            surfaces.append(Surface(corners, pyramids[index, shade], paints[index][2]))
+    for sign, shade in ((1.0, 0.85), (-1.0, 0.8)):
+        corners = quad(
+            np.array([sign * total / 2, 0.0, height / 2]), -sign * x, -sign * y, width / 2, height / 2
+        )
+        surfaces.append(Surface(corners, pyramids[4, shade], density))
+    return tuple(surfaces)
+
+
+def _pack_bay(config: SynthConfig, bay: int) -> list[WorldObject]:
+    """Objects along both long walls of one bay (from their own seeded Generator): floor objects side
+    by side, wall-mounted ones above them (not over anything as tall), 3-4 items on each table."""
+    length, width, _ = config.bay_size
+    west = -config.bays * length / 2 + bay * length
+    rng = np.random.default_rng([config.seed, 4, bay])
+    # Each long wall of the bay: start corner, direction along it, inward normal.
+    walls = (
+        (np.array([west, width / 2]), np.array([1.0, 0.0]), np.array([0.0, -1.0])),
+        (np.array([west + length, -width / 2]), np.array([-1.0, 0.0]), np.array([0.0, 1.0])),
+    )
+    end = length - BAY_MARGIN
+    objects: list[WorldObject] = []
+    tables: list[WorldObject] = []
+    for start, direction, inward in walls:
+        # Floor objects: (start, end, height) along the wall, for the wall-mounted ones to avoid.
+        below: list[tuple[float, float, float]] = []
+        s = BAY_MARGIN + float(rng.uniform(0.0, 0.3))
+        while True:
+            fits = [k for k, cls in enumerate(BAY_FLOOR_CLASSES) if s + cls.size[0] <= end]
+            if not fits:
+                break
+            weights = np.array([BAY_FLOOR_WEIGHTS[k] for k in fits])
+            cls = BAY_FLOOR_CLASSES[int(rng.choice(fits, p=weights / weights.sum()))]
+            obj = _against_wall(cls, start, direction, inward, s, float(rng.uniform(0.03, 0.2)))
+            objects.append(obj)
+            if cls is TABLE:
+                tables.append(obj)
+            below.append((s, s + cls.size[0], cls.size[2]))
+            s += cls.size[0] + float(rng.uniform(0.05, 0.3))
+        s = BAY_MARGIN + float(rng.uniform(0.0, 0.4))
+        while True:
+            cls = BAY_WALL_CLASSES[int(rng.integers(len(BAY_WALL_CLASSES)))]
+            if s + cls.size[0] > end:
+                break
+            blocked = [b for a, b, h in below if h + 0.02 > cls.elevation and a < s + cls.size[0] and s < b]
+            if blocked:
+                s = max(blocked) + 0.05
+                continue
+            objects.append(_against_wall(cls, start, direction, inward, s, 0.02))
+            s += cls.size[0] + float(rng.uniform(0.15, 0.5))
+    for table in tables:
+        tw, td, th = table.size
+        for slot in range(int(rng.integers(3, ITEMS_PER_TABLE + 1))):
+            cls = TABLE_ITEMS[int(rng.integers(len(TABLE_ITEMS)))]
+            w, d, h = cls.size
+            slot_w = tw / ITEMS_PER_TABLE
+            local_x = -tw / 2 + slot_w * (slot + 0.5) + rng.uniform(-1, 1) * max(0.0, (slot_w - w) / 2 - 0.01)
+            local_y = rng.uniform(-1, 1) * max(0.0, (td - max(w, d)) / 2 - 0.03)
+            yaw = table.yaw + float(rng.uniform(-0.25, 0.25))
+            centre = table.transform_at(0.0) @ np.array([local_x, local_y, th + h / 2, 1.0])
+            objects.append(
+                WorldObject(
+                    cls.label, 0, (float(centre[0]), float(centre[1]), float(centre[2])), cls.size, yaw
+                )
+            )
+    return objects
+
+
+def _against_wall(
+    cls: ObjectClass, start: np.ndarray, direction: np.ndarray, inward: np.ndarray, s: float, gap: float
+) -> WorldObject:
+    """``cls`` from ``s`` to ``s + width`` along a wall, ``gap`` in front of it, its front facing inward."""
+    w, d, h = cls.size
+    xy = start + direction * (s + w / 2) + inward * (gap + d / 2)
+    base = cls.elevation if cls.mount == "wall" else 0.0
+    return WorldObject(
+        cls.label, 0, (float(xy[0]), float(xy[1]), base + h / 2), cls.size, math.atan2(inward[0], -inward[1])
+    )
+
+
+def _place_hall_people(
+    config: SynthConfig, rng: np.random.Generator, first_instance: int
+) -> list[WorldObject]:
+    """People walking across the hall near its end walls, in turn east and west: the camera's lanes run
+    along the hall, and people walking alongside them filled the view for seconds at a time, moving
+    with the camera (the monocular frontend then lost its scale)."""
+    total, width, _ = hall_size(config)
+    people = []
+    for k in range(config.movable_objects):
+        side = 1.0 if k % 2 == 0 else -1.0
+        x0 = side * (total / 2 - HALL_PERSON_LANE - min(0.4, 0.2 * (k // 2)))
+        amplitude = float(rng.uniform(0.6, 1.0)) * (width / 2 - PERSON_LANE)
+        people.append(
+            WorldObject(
+                PERSON.label,
+                first_instance + k,
+                (x0, 0.0, PERSON.size[2] / 2),
+                PERSON.size,
+                math.pi / 2 if side > 0 else -math.pi / 2,
                 movable=True,
                 amplitude=amplitude,
                 period=float(rng.uniform(7.0, 11.0)),

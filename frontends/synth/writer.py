@@ -35,7 +35,7 @@ from frontends.errors import ConfigError, InputFileError
 from frontends.gt_loops import write_loop_pairs
 from frontends.synth.covisibility import covisible_pairs
 from frontends.synth.render import GtObject, RenderedFrame, SceneRenderer
-from frontends.synth.world import SynthConfig, WorldObject
+from frontends.synth.world import BAYS_FIELDS, SynthConfig, WorldObject
 from frontends.trajectory_io import write_trajectory
 
 #: Level 1 Huffman-only deflate: on noisy images it is ~2x faster than level 1 and ~10 % smaller.
@@ -59,6 +59,7 @@ def write_scene(
     sheet_frames = set(np.linspace(0, config.frames - 1, CONTACT_SHEET_FRAMES).round().astype(int).tolist())
     thumbnails: list[np.ndarray] = []
     object_lines: list[str] = []
+    static_per_frame: list[int] = []
     depth_grids: list[np.ndarray] = []
     render_seconds = 0.0
     pending: deque[tuple[Path, Future[bool]]] = deque()
@@ -77,6 +78,7 @@ def write_scene(
             while len(pending) > MAX_PENDING_WRITES:
                 _finish(*pending.popleft())
             object_lines.append(_objects_line(frame))
+            static_per_frame.append(sum(not obj.movable for obj in frame.objects))
             if contact_sheet is not None and index in sheet_frames:
                 thumbnails.append(_thumbnail(frame))
             bar.update()
@@ -109,7 +111,7 @@ def write_scene(
         "max_rotation_deg_per_frame": round(scene.path.max_rotation_deg, 4),
     }
     description = {
-        "config": config_to_dict(config),
+        "config": config_record(config),
         "intrinsics": intrinsics,
         "loop_labels": dataclasses.asdict(config.loop_labels),
         "path": path_figures,
@@ -126,6 +128,7 @@ def write_scene(
         "loop_query_frames": len(np.unique(pairs[:, 0])),
         "objects": len(scene.world.objects) - movable,
         "movable_objects": movable,
+        "objects_per_frame_mean": round(float(np.mean(static_per_frame)), 3),
         "mean_speed_mps": path_figures["mean_speed_mps"],
         "max_rotation_deg_per_frame": path_figures["max_rotation_deg_per_frame"],
         "render_fps": config.frames / render_seconds,
@@ -144,9 +147,21 @@ def cached_scene(config: SynthConfig, folder: str | Path) -> Path:
         current = json.loads((folder / "scene.json").read_text(encoding="utf-8"))["config"]
     except (OSError, ValueError, KeyError):
         current = None
-    if current != json.loads(json.dumps(config_to_dict(config))):
+    if current != json.loads(json.dumps(config_record(config))):
         write_scene(config, folder, progress=False)
     return folder
+
+
+def config_record(config: SynthConfig) -> dict[str, object]:
+    """The config as ``scene.json`` stores it; a room scene leaves out the bays-layout fields that hold
+    their defaults, so it keeps the files (and cache keys) it had before those fields existed."""
+    record = config_to_dict(config)
+    if config.layout == "room":
+        defaults = config_to_dict(SynthConfig())
+        for name in BAYS_FIELDS:
+            if record[name] == defaults[name]:
+                del record[name]
+    return record
 
 
 def _prepare_output(out: Path) -> None:
