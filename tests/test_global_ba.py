@@ -229,12 +229,15 @@ def test_repose_frame_from_adjusted_points() -> None:
         ("min_observations", 1),
         ("fuse_radius_px", -1.0),
         ("fuse_max_hamming", 0),
+        ("max_observations", -1),
+        ("weak_keyframe_share", 1.0),
+        ("weak_keyframe_share", -0.1),
     ],
 )
 def test_bad_settings_are_config_errors(field: str, value: float) -> None:
     from frontends.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="global_ba"):
+    with pytest.raises(ConfigError, match=f"global_ba.*{field}"):
         GlobalBundleAdjustmentConfig(**{field: value})
 
 

@@ -8,14 +8,16 @@ direction and lane; ``symbio synth --set layout=bays``), rendered once into ``--
 
 Each repeat degrades the scene's ground-truth objects with the ``oracle`` detector (``--miss-rate``,
 seed ``--seed`` + repeat: the paper's 50 repeats over the detector's randomness) and feeds every
-variant the same keyframes (``eval.lcd_eval.run_lcd``: features and objects computed once). One
-sample = one (scene, repeat). Per variant: recall at 100 % precision and area under the PR curve,
-their mean and 95 % confidence interval (Student t over the samples), the objects per keyframe
-beside them, and autorank's Friedman / Nemenyi analysis of the paired samples (``--plot``: its
-critical-difference diagram; needs >= 5 samples).
+variant the same keyframes (``eval.lcd_eval.run_lcd``: features and objects computed once); the
+variants that never read objects (``OBJECT_BLIND``) run once per scene. One sample = one (scene,
+repeat). Per variant: recall at 100 % precision and area under the PR curve, their mean and 95 %
+confidence interval (Student t over the samples: the detector's randomness on these scenes, not the
+choice of scenes), the objects per keyframe beside them, and autorank's Friedman / Nemenyi analysis
+of the paired samples (``--plot``: its critical-difference diagram; needs >= 5 samples). Results:
+docs/2026-12-06-objects-ablation.md.
 
 Usage: ``python -m eval.bench_objects_ablation [--repeats 50] [--seed 0] [--scene-seeds 0,1,2]
-[--frames 900] [--miss-rate 0.3] [--scenes DIR] [--plot CD.png] [--json OUT]``. The flat JSON has
+[--frames 900] [--miss-rate 0.3] [--scenes DIR] [--jobs 2] [--plot CD.png] [--json OUT]``. The flat JSON has
 ``recall_at_100p_<variant>``, ``ci95_low_<variant>``, ``ci95_high_<variant>``, ``auc_pr_<variant>``,
 ``objects_per_keyframe_mean``, ``samples`` and per scene ``<scene>|recall_at_100p_<variant>``.
 """
