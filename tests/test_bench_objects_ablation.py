@@ -47,3 +47,19 @@ def test_draws_change_only_the_object_variants(small_loop_scene: Path) -> None:
 def test_bad_repeats_is_a_clear_error(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     assert ablation.main(["--repeats", "0", "--scenes", str(tmp_path)]) == 2
     assert "--repeats must be >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.shared
+@pytest.mark.slow
+def test_real_rows_use_the_cnn_detector(shared: Path) -> None:
+    """RTAB-Map's 84 real images: ssd-mobilenet finds 0.38 objects per keyframe (most images none);
+    the variants score as in ``eval.bench.lcd`` (vbow 0.977, symbiolcd2 0.955 at 100 % precision)."""
+    folders = ablation.real_sets(shared)
+    assert [f.name for f in folders] == list(ablation.REAL_SETS)
+    figures = ablation.run_real(folders[0])
+    assert 0.2 < figures["rtabmap_samples|objects_per_keyframe_mean"] < 1.0
+    assert figures["rtabmap_samples|recall_at_100p_vbow"] >= 0.9
+    assert figures["rtabmap_samples|recall_at_100p_three_tier"] >= 0.9
+    assert set(figures) == {
+        f"rtabmap_samples|{kind}_{key}" for kind in ("recall_at_100p", "auc_pr") for key in ablation.VARIANTS
+    } | {"rtabmap_samples|objects_per_keyframe_mean"}

@@ -4,7 +4,9 @@ Variants: ``vbow`` (bag of words), ``symbiolcd`` (v1), and SymbioLCD2 as ``flat`
 ``two_tier`` (objects and the features inside their boxes) and ``three_tier`` (the paper's graph).
 Scenes: the perceptually aliased synthetic set (``ALIASED_SCENES``: rooms in a row with identical
 walls, floor and ceiling that differ only in which objects stand where, revisited from the other
-direction and lane; ``symbio synth --set layout=bays``), rendered once into ``--scenes``.
+direction and lane; ``symbio synth --set layout=bays``), rendered once into ``--scenes``; and, one
+row each, the real loop sets of the shared folder (``REAL_SETS``, ``ssd-mobilenet`` objects, one
+deterministic sample; ``--no-real`` skips them).
 
 Each repeat degrades the scene's ground-truth objects with the ``oracle`` detector (``--miss-rate``,
 seed ``--seed`` + repeat: the paper's 50 repeats over the detector's randomness) and feeds every
@@ -25,6 +27,7 @@ Usage: ``python -m eval.bench_objects_ablation [--repeats 50] [--seed 0] [--scen
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -58,6 +61,9 @@ VARIANTS = {
 OBJECT_BLIND = ("vbow", "flat")
 #: The aliased layout (``frontends.synth``) every scene of the set uses; the seed varies.
 ALIASED_OVERRIDES: dict[str, Any] = {"layout": "bays", "trajectory": "hall"}
+#: The real loop sets of the shared folder scored beside the aliased scenes, and their detector.
+REAL_SETS = ("rtabmap_samples", "gardens_point_day", "corridor")
+REAL_OBJECT_DETECTOR = "ssd-mobilenet"
 #: Keyframe spacing (s) and GT tolerance (frames: half a keyframe step), as ``eval.bench.lcd``.
 KEYFRAME_PERIOD = 0.2
 TOLERANCE = 3
@@ -120,6 +126,28 @@ def run_scene(folder: Path, seeds: Sequence[int], miss_rate: float, jobs: int) -
     else:
         drawn = [run_repeat(*task) for task in tasks]
     return [Sample(s.scene, s.repeat, {**blind.figures, **s.figures}, s.objects_per_keyframe) for s in drawn]
+
+
+def real_sets(shared: Path) -> list[Path]:
+    """The shared real loop sets there are (``REAL_SETS``), in that order."""
+    return [
+        shared / "data" / "loops" / name for name in REAL_SETS if (shared / "data" / "loops" / name).is_dir()
+    ]
+
+
+def run_real(folder: Path) -> dict[str, Any]:
+    """Every variant on one real loop set with the default CNN detector (deterministic: one sample):
+    ``<set>|recall_at_100p_<variant>``, ``<set>|auc_pr_<variant>`` and ``<set>|objects_per_keyframe_mean``."""
+    detectors = [LOOP_DETECTORS.load(name)() for name in VARIANTS.values()]
+    objects = _Counting(OBJECT_DETECTORS.load(REAL_OBJECT_DETECTOR)())
+    runs = run_lcd(open_dataset(folder), detectors, objects, OrbConfig(), KEYFRAME_PERIOD, 0, progress=False)
+    figures: dict[str, Any] = {}
+    for key, detector, run in zip(VARIANTS, detectors, runs, strict=True):
+        found = figures_of(run, detector.threshold)
+        figures[f"{folder.name}|recall_at_100p_{key}"] = found["recall_at_100p"]
+        figures[f"{folder.name}|auc_pr_{key}"] = found["auc_pr"]
+    figures[f"{folder.name}|objects_per_keyframe_mean"] = float(np.mean(objects.counts))
+    return figures
 
 
 def interval(values: Sequence[float], level: float = 0.95) -> tuple[float, float, float]:
@@ -186,6 +214,19 @@ def markdown(figures: dict[str, Any], analysis: RankAnalysis | None) -> str:
     return "\n".join(rows)
 
 
+def real_markdown(real: dict[str, Any]) -> str:
+    names = sorted({key.split("|")[0] for key in real}, key=lambda n: REAL_SETS.index(n))
+    rows = [
+        f"\nreal loop sets ({REAL_OBJECT_DETECTOR}), recall at 100 % precision:",
+        "| set | objects per keyframe | " + " | ".join(VARIANTS) + " |",
+        "|---" * (len(VARIANTS) + 2) + "|",
+    ]
+    for name in names:
+        cells = " | ".join(f"{real[f'{name}|recall_at_100p_{key}']:.3f}" for key in VARIANTS)
+        rows.append(f"| {name} | {real[f'{name}|objects_per_keyframe_mean']:.2f} | {cells} |")
+    return "\n".join(rows)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -197,6 +238,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--miss-rate", type=float, default=0.3, help="oracle miss rate (default 0.3)")
     parser.add_argument("--scenes", type=Path, default=Path("bench_scenes"), help="cache of rendered scenes")
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
+    parser.add_argument(
+        "--shared",
+        type=Path,
+        default=Path(os.environ.get("SYMBIO_SHARED", "../shared")),
+        help="shared data: its real loop sets get one row each (default $SYMBIO_SHARED or ../shared)",
+    )
+    parser.add_argument("--no-real", action="store_true", help="skip the real loop sets")
     parser.add_argument("--plot", type=Path, help="write the critical-difference diagram (PNG)")
     add_json_option(parser)
     args = parser.parse_args(argv)
@@ -210,11 +258,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             samples += run_scene(folder, seeds, args.miss_rate, args.jobs)
             print(f"done: {folder.name}", file=sys.stderr)
         analysis = ranks(samples)
+        real: dict[str, Any] = {}
+        for folder in [] if args.no_real else real_sets(args.shared):
+            real.update(run_real(folder))
+            print(f"done: {folder.name}", file=sys.stderr)
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    figures = summarise(samples)
+    figures = {**summarise(samples), **real}
     print(markdown(figures, analysis))
+    if real:
+        print(real_markdown(real))
     if args.plot is not None and analysis is not None and not plot_critical_difference(analysis, args.plot):
         print("note: autorank drew no critical-difference diagram (no significant difference)")
     print_figures({k: v for k, v in figures.items() if "|" not in k})
