@@ -478,20 +478,21 @@ def _place_static_objects(config: SynthConfig, rng: np.random.Generator) -> list
             tables.append(obj)
     items = [TABLE_ITEMS[i] for i in rng.integers(0, len(TABLE_ITEMS), n_items)]
     for k, cls in enumerate(items):
-        table = tables[k % len(tables)]
-        slot = k // len(tables)
-        tw, td, th = table.size
-        w, d, h = cls.size
-        # One item per slot along the table: no two items overlap.
-        slot_w = tw / ITEMS_PER_TABLE
-        local_x = -tw / 2 + slot_w * (slot + 0.5) + rng.uniform(-1, 1) * max(0.0, (slot_w - w) / 2 - 0.01)
-        local_y = rng.uniform(-1, 1) * max(0.0, (td - max(w, d)) / 2 - 0.03)
-        yaw = table.yaw + float(rng.uniform(-0.25, 0.25))
-        centre = table.transform_at(0.0) @ np.array([local_x, local_y, th + h / 2, 1.0])
-        objects.append(
-            WorldObject(cls.label, 0, (float(centre[0]), float(centre[1]), float(centre[2])), cls.size, yaw)
-        )
+        objects.append(_on_table(tables[k % len(tables)], cls, k // len(tables), rng))
     return [_with_instance(obj, k + 1) for k, obj in enumerate(objects)]
+
+
+def _on_table(table: WorldObject, cls: ObjectClass, slot: int, rng: np.random.Generator) -> WorldObject:
+    """``cls`` standing in ``slot`` of ``ITEMS_PER_TABLE`` along ``table`` (no two slots overlap),
+    jittered and turned a little."""
+    tw, td, th = table.size
+    w, d, h = cls.size
+    slot_w = tw / ITEMS_PER_TABLE
+    local_x = -tw / 2 + slot_w * (slot + 0.5) + rng.uniform(-1, 1) * max(0.0, (slot_w - w) / 2 - 0.01)
+    local_y = rng.uniform(-1, 1) * max(0.0, (td - max(w, d)) / 2 - 0.03)
+    yaw = table.yaw + float(rng.uniform(-0.25, 0.25))
+    centre = table.transform_at(0.0) @ np.array([local_x, local_y, th + h / 2, 1.0])
+    return WorldObject(cls.label, 0, (float(centre[0]), float(centre[1]), float(centre[2])), cls.size, yaw)
 
 
 def _with_instance(obj: WorldObject, instance: int) -> WorldObject:
@@ -642,20 +643,9 @@ def _pack_bay(config: SynthConfig, bay: int) -> list[WorldObject]:
             objects.append(_against_wall(cls, start, direction, inward, s, 0.02))
             s += cls.size[0] + float(rng.uniform(0.15, 0.5))
     for table in tables:
-        tw, td, th = table.size
         for slot in range(int(rng.integers(3, ITEMS_PER_TABLE + 1))):
             cls = TABLE_ITEMS[int(rng.integers(len(TABLE_ITEMS)))]
-            w, d, h = cls.size
-            slot_w = tw / ITEMS_PER_TABLE
-            local_x = -tw / 2 + slot_w * (slot + 0.5) + rng.uniform(-1, 1) * max(0.0, (slot_w - w) / 2 - 0.01)
-            local_y = rng.uniform(-1, 1) * max(0.0, (td - max(w, d)) / 2 - 0.03)
-            yaw = table.yaw + float(rng.uniform(-0.25, 0.25))
-            centre = table.transform_at(0.0) @ np.array([local_x, local_y, th + h / 2, 1.0])
-            objects.append(
-                WorldObject(
-                    cls.label, 0, (float(centre[0]), float(centre[1]), float(centre[2])), cls.size, yaw
-                )
-            )
+            objects.append(_on_table(table, cls, slot, rng))
     return objects
 
 
