@@ -2,7 +2,7 @@
 
 Variants: ``vbow`` (bag of words), ``symbiolcd`` (v1), and SymbioLCD2 as ``flat`` (features only),
 ``two_tier`` (objects and the features inside their boxes) and ``three_tier`` (the paper's graph).
-Scenes: the perceptually aliased synthetic set (``ALIASED_SCENES``: rooms in a row with identical
+Scenes: the perceptually aliased synthetic set (``ALIASED_OVERRIDES``: rooms in a row with identical
 walls, floor and ceiling that differ only in which objects stand where, revisited from the other
 direction and lane; ``symbio synth --set layout=bays``), rendered once into ``--scenes``; and, one
 row each, the real loop sets of the shared folder (``REAL_SETS``, ``ssd-mobilenet`` objects, one
@@ -19,9 +19,10 @@ of the paired samples (``--plot``: its critical-difference diagram; needs >= 5 s
 docs/2026-12-06-objects-ablation.md.
 
 Usage: ``python -m eval.bench_objects_ablation [--repeats 50] [--seed 0] [--scene-seeds 0,1,2]
-[--frames 900] [--miss-rate 0.3] [--scenes DIR] [--jobs 2] [--plot CD.png] [--json OUT]``. The flat JSON has
-``recall_at_100p_<variant>``, ``ci95_low_<variant>``, ``ci95_high_<variant>``, ``auc_pr_<variant>``,
-``objects_per_keyframe_mean``, ``samples`` and per scene ``<scene>|recall_at_100p_<variant>``.
+[--frames 900] [--miss-rate 0.3] [--scenes DIR] [--jobs 2] [--no-real] [--plot CD.png] [--json OUT]``.
+The flat JSON has ``recall_at_100p_<variant>``, ``ci95_low_<variant>``, ``ci95_high_<variant>``,
+``auc_pr_<variant>``, ``objects_per_keyframe_mean``, ``samples`` and per scene
+``<scene>|recall_at_100p_<variant>``.
 """
 
 from __future__ import annotations
@@ -100,18 +101,27 @@ class _Counting:
         return found
 
 
-def run_repeat(folder: Path, repeat_seed: int, miss_rate: float, variants: Sequence[str]) -> Sample:
-    """The ``variants`` on one scene with one draw of the detector's misses."""
+def _score(
+    folder: Path, variants: Sequence[str], objects: ObjectDetector, tolerance: int
+) -> tuple[dict[str, dict[str, Any]], float]:
+    """The ``variants``' figures on one dataset (one ``run_lcd`` pass) and the objects per keyframe."""
     detectors = [LOOP_DETECTORS.load(VARIANTS[key])() for key in variants]
-    objects = _Counting(OBJECT_DETECTORS.load("oracle")([f"miss_rate={miss_rate}", f"seed={repeat_seed}"]))
+    counting = _Counting(objects)
     runs = run_lcd(
-        open_dataset(folder), detectors, objects, OrbConfig(), KEYFRAME_PERIOD, TOLERANCE, progress=False
+        open_dataset(folder), detectors, counting, OrbConfig(), KEYFRAME_PERIOD, tolerance, progress=False
     )
     figures = {
         key: figures_of(run, detector.threshold)
         for key, detector, run in zip(variants, detectors, runs, strict=True)
     }
-    return Sample(folder.name, repeat_seed, figures, float(np.mean(objects.counts)))
+    return figures, float(np.mean(counting.counts))
+
+
+def run_repeat(folder: Path, repeat_seed: int, miss_rate: float, variants: Sequence[str]) -> Sample:
+    """The ``variants`` on one scene with one draw of the detector's misses."""
+    oracle = OBJECT_DETECTORS.load("oracle")([f"miss_rate={miss_rate}", f"seed={repeat_seed}"])
+    figures, objects_per_keyframe = _score(folder, variants, oracle, TOLERANCE)
+    return Sample(folder.name, repeat_seed, figures, objects_per_keyframe)
 
 
 def run_scene(folder: Path, seeds: Sequence[int], miss_rate: float, jobs: int) -> list[Sample]:
@@ -130,23 +140,21 @@ def run_scene(folder: Path, seeds: Sequence[int], miss_rate: float, jobs: int) -
 
 def real_sets(shared: Path) -> list[Path]:
     """The shared real loop sets there are (``REAL_SETS``), in that order."""
-    return [
-        shared / "data" / "loops" / name for name in REAL_SETS if (shared / "data" / "loops" / name).is_dir()
-    ]
+    loops = shared / "data" / "loops"
+    return [loops / name for name in REAL_SETS if (loops / name).is_dir()]
 
 
 def run_real(folder: Path) -> dict[str, Any]:
     """Every variant on one real loop set with the default CNN detector (deterministic: one sample):
     ``<set>|recall_at_100p_<variant>``, ``<set>|auc_pr_<variant>`` and ``<set>|objects_per_keyframe_mean``."""
-    detectors = [LOOP_DETECTORS.load(name)() for name in VARIANTS.values()]
-    objects = _Counting(OBJECT_DETECTORS.load(REAL_OBJECT_DETECTOR)())
-    runs = run_lcd(open_dataset(folder), detectors, objects, OrbConfig(), KEYFRAME_PERIOD, 0, progress=False)
+    found, objects_per_keyframe = _score(
+        folder, list(VARIANTS), OBJECT_DETECTORS.load(REAL_OBJECT_DETECTOR)(), 0
+    )
     figures: dict[str, Any] = {}
-    for key, detector, run in zip(VARIANTS, detectors, runs, strict=True):
-        found = figures_of(run, detector.threshold)
-        figures[f"{folder.name}|recall_at_100p_{key}"] = found["recall_at_100p"]
-        figures[f"{folder.name}|auc_pr_{key}"] = found["auc_pr"]
-    figures[f"{folder.name}|objects_per_keyframe_mean"] = float(np.mean(objects.counts))
+    for key, variant in found.items():
+        figures[f"{folder.name}|recall_at_100p_{key}"] = variant["recall_at_100p"]
+        figures[f"{folder.name}|auc_pr_{key}"] = variant["auc_pr"]
+    figures[f"{folder.name}|objects_per_keyframe_mean"] = objects_per_keyframe
     return figures
 
 
