@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import reprlib
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -38,11 +39,16 @@ def read_numeric_table(
     allowed = (columns,) if isinstance(columns, int) else tuple(columns)
     try:
         with open(path, encoding="utf-8-sig") as handle:
-            text_lines = handle.read().splitlines()
+            text = handle.read()
     except FileNotFoundError:
         raise error(path, "file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise error(path, f"cannot read file ({exc})") from None
+    if delimiter is None:
+        fast = _whitespace_table(path, text, allowed)
+        if fast is not None:
+            return fast
+    text_lines = text.splitlines()
     rows: list[list[float]] = []
     line_numbers: list[int] = []
     width = None
@@ -71,6 +77,39 @@ def read_numeric_table(
             return np.zeros((0, min(allowed))), np.zeros(0, dtype=np.int64)
         raise error(path, "no data lines")
     return np.asarray(rows, dtype=np.float64), np.asarray(line_numbers)
+
+
+def _whitespace_table(
+    path: Path, text: str, allowed: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``read_numeric_table``'s result for a plain whitespace table, parsed by NumPy's C reader
+    (the GT loop pairs of a 9000-frame scene: 2.2 M lines, 0.7 GB and 20 s line by line); None for
+    anything unusual, which the line-by-line parser then reads or reports with its line number."""
+    buffer = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+    control = np.ones(256, dtype=bool)
+    control[32:] = False
+    control[[9, 10, 13]] = False
+    if len(buffer) == 0 or control[buffer].any():
+        return None  # other line breaks or control characters
+    starts = np.r_[0, np.flatnonzero(buffer == 10) + 1]
+    starts = starts[starts < len(buffer)]
+    first = buffer[starts]
+    if ((first == 9) | (first == 32)).any():
+        return None  # indented lines
+    comment = (first == ord("#")) | (first == ord("%"))
+    data = ~comment & (first != 10) & (first != 13)
+    marks = np.flatnonzero((buffer == ord("#")) | (buffer == ord("%")))
+    if not data.any() or data[np.searchsorted(starts, marks, side="right") - 1].any():
+        return None  # a comment after numbers
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            table = np.loadtxt(path, dtype=np.float64, comments=("#", "%"), ndmin=2, encoding="utf-8-sig")
+    except (ValueError, OSError):
+        return None
+    if len(table) != data.sum() or table.shape[1] not in allowed or not np.isfinite(table).all():
+        return None
+    return table, np.flatnonzero(data) + 1
 
 
 def _is_float(text: str) -> bool:
