@@ -90,7 +90,7 @@ from frontends.base import PointObservations, TrackResult
 from frontends.errors import ConfigError
 from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
-from lcd.objects.filtering import MOVABLE_LABELS
+from lcd.objects.filtering import MOVABLE_LABELS, VEHICLE_LABELS
 from slam_backend.global_ba import (
     AdjustedMap,
     GlobalBundleAdjustmentConfig,
@@ -147,6 +147,8 @@ class LoopClosingConfig:
     bridge_support: int = 2
     #: Confidence of the chi2 test between loops that bridge two segments.
     bridge_confidence: float = 0.999
+    #: Seconds between the queries of two loops that support a bridge (docs/2026-12-06-walking-people.md)
+    bridge_min_interval_s: float = 0.5
     #: Settled keyframes after which a thin-map candidate is re-verified (see "Deferred loops"); 0: rejected.
     defer_retries: int = 3
     #: Map points a retry keyframe must share with the deferred query (docs/2026-12-06-config-evidence.md)
@@ -177,6 +179,8 @@ class LoopClosingConfig:
             )
         if self.bridge_support < 1 or not 0.0 < self.bridge_confidence < 1.0:
             raise ConfigError("loop_closing: bridge_support must be >= 1 and bridge_confidence in (0, 1)")
+        if not self.bridge_min_interval_s >= 0.0:
+            raise ConfigError("loop_closing: bridge_min_interval_s must be >= 0")
         if self.defer_retries < 0 or self.defer_min_shared_points < 1:
             raise ConfigError(
                 "loop_closing: defer_retries must be >= 0 and defer_min_shared_points >= 1, got "
@@ -452,6 +456,8 @@ class LoopClosing:
         self._records: list[LoopRecord] = []
         #: Detections of frames the frontend asked about (``movable_boxes``), reused for keyframes.
         self._detections: dict[int, tuple[DetectedObject, ...]] = {}
+        #: Each keyframe's detected objects, by keyframe id (the verifier leaves out walking people).
+        self._objects: dict[int, tuple[DetectedObject, ...]] = {}
         self._previous: Keyframe | None = None
         #: A verification that ran past its budget and has not returned yet.
         self._late_verification: threading.Thread | None = None
@@ -747,16 +753,20 @@ class LoopClosing:
         found = self._detect(frame)
         self._detections[frame.index] = found
         movable = set(self.config.movable_labels)
-        parked = {"bicycle", "car", "motorcycle", "bus", "train", "truck", "boat"}
-        return [(*o.box, float(o.label in parked)) for o in found if o.label in movable]
+        return [(*o.box, float(o.label in VEHICLE_LABELS)) for o in found if o.label in movable]
 
     def _with_objects(self, keyframe: Keyframe) -> Keyframe:
         if self.objects is None or keyframe.image is None:
             return keyframe
         path = self._paths.get(keyframe.frame_index)
         found = self._detect(Frame(keyframe.frame_index, keyframe.timestamp, keyframe.image, path))
+        self._objects[keyframe.id] = found
         # The frontend's keyframe object stays the frontend's; the detector gets a copy with objects.
         return replace(keyframe, objects=found)
+
+    def _job_copy(self, keyframe: Keyframe) -> Keyframe:
+        """A shallow copy of ``keyframe`` for the verifier, with its detected objects."""
+        return replace(keyframe, objects=keyframe.objects or self._objects.get(keyframe.id, ()))
 
     def _close_loops(self, keyframe: Keyframe) -> list[LoopRecord]:
         assert self.detector is not None
@@ -790,8 +800,8 @@ class LoopClosing:
     ) -> _Pending:
         """Hand the keyframe's verifications to a worker thread (``_Pending``)."""
         # Shallow copies: the frontend re-assigns a keyframe's pose and points while the worker reads.
-        jobs = [(replace(keyframe), replace(self._keyframes[c.match])) for c in chosen]
-        jobs += [(replace(query), replace(self._keyframes[c.match])) for query, c, _ in retries]
+        jobs = [(self._job_copy(keyframe), self._job_copy(self._keyframes[c.match])) for c in chosen]
+        jobs += [(self._job_copy(query), self._job_copy(self._keyframes[c.match])) for query, c, _ in retries]
         pending = _Pending(keyframe, chosen, retries, closed, jobs, budget=self.config.verify_timeout_s)
         if not jobs or self.verifier is None:
             return pending
@@ -1099,12 +1109,20 @@ class LoopClosing:
         return first in joined and second in joined and nx.has_path(joined, first, second)
 
     def _support(self, segments: frozenset[int], loop: LoopInput) -> list[_HeldBridge]:
-        """The held loops between ``segments`` that pass PCM's pairwise test with ``loop``."""
+        """The held loops between ``segments`` that pass PCM's pairwise test with ``loop`` and are
+        another look: other keyframes on both sides, queries ``bridge_min_interval_s`` apart. One
+        view verified twice is one piece of evidence, and a person walking through both views of
+        the place keeps a wrong two-view pose for a moment (docs/2026-12-06-walking-people.md)."""
         new = self._measurement(loop)
+        match, query = loop[0], loop[1]
+        when = self._keyframes[query].timestamp
         return [
             h
             for h in self._held
             if h.segments == segments
+            and h.loop[0] != match
+            and h.loop[1] != query
+            and abs(self._keyframes[h.loop[1]].timestamp - when) >= self.config.bridge_min_interval_s
             and self._pcm.mahalanobis(new, self._measurement(h.loop)) < self._pcm.threshold
         ]
 

@@ -37,6 +37,7 @@ from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.orb import match_descriptors
 from frontends.types import CameraIntrinsics, Keyframe
+from lcd.objects.filtering import WALKING_LABELS
 from slam_backend import plugins
 
 
@@ -114,6 +115,10 @@ class VerifierConfig:
     min_translation_sigma: float = 0.01
     #: Floor of the log-scale's standard deviation.
     min_log_scale_sigma: float = 0.02
+    #: Keypoints in detected boxes of these classes are not matched (they move between visits).
+    ignore_labels: tuple[str, ...] = WALKING_LABELS
+    #: Two-view pose of a planar fit too (homography decomposition), not only an essential matrix's.
+    planar_pose: bool = False
     #: Seed of pycolmap's RANSAC.
     seed: int = 0
 
@@ -170,10 +175,17 @@ def verify_two_view(
 ) -> TwoViewVerification:
     """Does ``query`` see ``match``'s place by its image alone? The first two stages of
     ``PycolmapVerifier.verify`` (which calls this), also used by ``symbio eval lcd --verify``."""
-    matched = match_descriptors(
-        query.descriptors, match.descriptors, config.ratio, config.max_hamming, mutual=True
+    # A person who walked through both views gives matches that agree with one rigid motion, the
+    # person's, not the camera's (docs/2026-12-06-walking-people.md).
+    in_query, in_match = (_unmasked(k, config.ignore_labels) for k in (query, match))
+    found_query, found_match = match_descriptors(
+        query.descriptors[in_query],
+        match.descriptors[in_match],
+        config.ratio,
+        config.max_hamming,
+        mutual=True,
     )
-    pairs = np.stack(matched, axis=1)
+    pairs = np.stack((in_query[found_query], in_match[found_match]), axis=1)
     if len(pairs) < config.min_matches:
         reason = f"{len(pairs)} descriptor matches < {config.min_matches}"
         return TwoViewVerification(False, reason, len(pairs), np.zeros((0, 2), dtype=np.int64))
@@ -197,10 +209,25 @@ def verify_two_view(
         )
         return TwoViewVerification(False, reason, len(pairs), inliers)
     relative = geometry.cam2_from_cam1
-    if geometry.config != pycolmap.TwoViewGeometryConfiguration.CALIBRATED or relative is None:
+    posed = {pycolmap.TwoViewGeometryConfiguration.CALIBRATED}
+    if config.planar_pose:
+        posed.add(pycolmap.TwoViewGeometryConfiguration.PLANAR)
+    if geometry.config not in posed or relative is None:
         return TwoViewVerification(True, "", len(pairs), inliers)
     pose = np.asarray(relative.matrix(), dtype=np.float64)
     return TwoViewVerification(True, "", len(pairs), inliers, pose, float(np.degrees(geometry.tri_angle)))
+
+
+def _unmasked(keyframe: Keyframe, labels: Sequence[str]) -> np.ndarray:
+    """Indices of the keyframe's keypoints outside the boxes of its objects of class ``labels``."""
+    keypoints = np.asarray(keyframe.keypoints).reshape(-1, 2)
+    keep = np.ones(len(keypoints), dtype=bool)
+    for obj in getattr(keyframe, "objects", ()):
+        if obj.label in labels:
+            x0, y0, x1, y1 = obj.box
+            x, y = keypoints[:, 0], keypoints[:, 1]
+            keep &= ~((x >= x0) & (x < x1) & (y >= y0) & (y < y1))
+    return np.flatnonzero(keep)
 
 
 class PycolmapVerifier:

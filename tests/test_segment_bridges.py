@@ -61,13 +61,15 @@ class StubVerifier:
         return Verification(query.id, match.id, True, "", 200, 150, relative, COVARIANCE)
 
 
-def run(proposals: dict[int, int | tuple[int, ...]], false: set[int], support: int = 2) -> LoopClosing:
+def run(
+    proposals: dict[int, int | tuple[int, ...]], false: set[int], support: int = 2, interval: float = 0.5
+) -> LoopClosing:
     closing = LoopClosing(
         GtsamPoseGraph(BackendConfig()),
         ChosenCandidates(proposals),  # type: ignore[arg-type]
         None,
         StubVerifier(false),  # type: ignore[arg-type]
-        LoopClosingConfig(bridge_support=support),
+        LoopClosingConfig(bridge_support=support, bridge_min_interval_s=interval),
     )
     for kf_id in range(2 * KEYFRAMES_PER_SEGMENT):
         segment = kf_id // KEYFRAMES_PER_SEGMENT
@@ -127,8 +129,24 @@ def test_one_held_loop_supports_two_candidates_of_one_query() -> None:
     assert len({r.loop_id for r in records}) == 3
 
 
+def test_support_is_another_look_at_the_place() -> None:
+    """The same view verified twice (a shared keyframe, or queries close in time) is one piece of
+    evidence: a walking person gave such pairs one wrong pose (docs/2026-12-06-walking-people.md)."""
+    for proposals in ({25: 5, 26: 5}, {25: (5, 6)}):
+        records = run(proposals, false=set()).loops()  # type: ignore[arg-type]
+        assert not any(r.accepted for r in records)
+        assert all(r.reason.startswith("held") for r in records)
+    # Keyframes are 1 s apart here: a 2 s interval needs queries two keyframes apart.
+    held = run({25: 5, 26: 6}, false=set(), interval=2.0).loops()
+    assert not any(r.accepted for r in held)
+    joined = run({25: 5, 27: 7}, false=set(), interval=2.0).loops()
+    assert all(r.accepted for r in joined)
+
+
 def test_bridge_support_is_validated() -> None:
     from frontends.errors import ConfigError
 
     with pytest.raises(ConfigError):
         LoopClosingConfig(bridge_support=0)
+    with pytest.raises(ConfigError, match="bridge_min_interval_s"):
+        LoopClosingConfig(bridge_min_interval_s=-1.0)

@@ -54,6 +54,11 @@ MOVABLE_LABELS: tuple[str, ...] = (
     "zebra",
     "giraffe",
 )
+#: The movable classes that are often parked: a frontend may keep one it sees standing still.
+VEHICLE_LABELS: tuple[str, ...] = ("bicycle", "car", "motorcycle", "bus", "train", "truck", "boat")
+#: People and animals: they stand still only for moments, so two visits of a place never see them
+#: in the same spot (what the loop verifier leaves out, ``slam_backend.verify``).
+WALKING_LABELS: tuple[str, ...] = tuple(label for label in MOVABLE_LABELS if label not in VEHICLE_LABELS)
 
 
 @dataclass(frozen=True)
