@@ -15,8 +15,10 @@ the next frame with ``prefetch``); then, by state,
   parallax to add points), optionally records its points in the keyframes before it
   (``search_neighbours``), runs the local bundle adjustment (``local_ba``) and culls weak points.
 * lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
-  features that fail, the segment is closed and a new one initialises (``segment`` += 1). Its
-  poses live in a new map frame: they are never spliced into the old one.
+  features that fail and ``patience_s`` seconds (ORB-SLAM3's "recently lost" state), the segment
+  is closed and a new one initialises (``segment`` += 1). Its poses live in a new map frame: they
+  are never spliced into the old one. A person walking past close to the camera hides half the
+  view for a second or two; the old map is usually found again after that.
 
 A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
 blackout ends in relocalisation if the camera comes back to a known view. A view of the map's
@@ -95,6 +97,8 @@ class MonoVo:
         self.last_frame_index = -1
         self.last_timestamp = 0.0
         self.failed_relocalisations = 0
+        #: Timestamp of the first failed relocalisation since tracking was lost.
+        self.lost_since: float | None = None
         #: Frames seen since the initialisation reference: posed against the new map once it exists.
         self.pending: list[tuple[int, float, Features]] = []
         #: Frames with features and no pose, before ``pending`` (lost, or the initialiser's earlier
@@ -249,7 +253,14 @@ class MonoVo:
             )
         self._keep_unposed([(frame.index, frame.timestamp, features)])
         self.failed_relocalisations += 1
-        if self.failed_relocalisations >= self.config.relocalisation.patience:
+        lost_since = getattr(self, "lost_since", None)  # None also in checkpoints from before
+        if self.failed_relocalisations == 1 or lost_since is None:
+            self.lost_since = lost_since = frame.timestamp
+        settings = self.config.relocalisation
+        if (
+            self.failed_relocalisations >= settings.patience
+            and frame.timestamp - lost_since >= settings.patience_s
+        ):
             self._start_segment(frame)
         return self._result(frame, "lost")
 
