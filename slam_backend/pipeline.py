@@ -147,8 +147,8 @@ class LoopClosingConfig:
     bridge_support: int = 2
     #: Confidence of the chi2 test between loops that bridge two segments.
     bridge_confidence: float = 0.999
-    #: Seconds between the queries of two loops that support a bridge (docs/2026-12-06-walking-people.md)
-    bridge_min_interval_s: float = 0.5
+    #: Seconds between the queries of loops that support a bridge; 0: any (docs/2026-12-06-walking-people.md)
+    bridge_min_interval_s: float = 0.0
     #: Settled keyframes after which a thin-map candidate is re-verified (see "Deferred loops"); 0: rejected.
     defer_retries: int = 3
     #: Map points a retry keyframe must share with the deferred query (docs/2026-12-06-config-evidence.md)

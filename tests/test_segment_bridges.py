@@ -62,7 +62,7 @@ class StubVerifier:
 
 
 def run(
-    proposals: dict[int, int | tuple[int, ...]], false: set[int], support: int = 2, interval: float = 0.5
+    proposals: dict[int, int | tuple[int, ...]], false: set[int], support: int = 2, interval: float = 0.0
 ) -> LoopClosing:
     closing = LoopClosing(
         GtsamPoseGraph(BackendConfig()),
