@@ -760,13 +760,20 @@ class LoopClosing:
             return keyframe
         path = self._paths.get(keyframe.frame_index)
         found = self._detect(Frame(keyframe.frame_index, keyframe.timestamp, keyframe.image, path))
-        self._objects[keyframe.id] = found
+        # Labels and boxes only: a segmenting detector's masks would grow with every keyframe.
+        self._keyframe_objects()[keyframe.id] = tuple(replace(o, mask=None) for o in found)
         # The frontend's keyframe object stays the frontend's; the detector gets a copy with objects.
         return replace(keyframe, objects=found)
 
     def _job_copy(self, keyframe: Keyframe) -> Keyframe:
         """A shallow copy of ``keyframe`` for the verifier, with its detected objects."""
-        return replace(keyframe, objects=keyframe.objects or self._objects.get(keyframe.id, ()))
+        return replace(keyframe, objects=keyframe.objects or self._keyframe_objects().get(keyframe.id, ()))
+
+    def _keyframe_objects(self) -> dict[int, tuple[DetectedObject, ...]]:
+        """``_objects``, made empty when resuming a checkpoint from before it existed."""
+        if not hasattr(self, "_objects"):
+            self._objects = {}
+        return self._objects
 
     def _close_loops(self, keyframe: Keyframe) -> list[LoopRecord]:
         assert self.detector is not None
