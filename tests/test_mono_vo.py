@@ -357,8 +357,9 @@ def test_relocalises_when_the_camera_returns_to_a_mapped_view(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("overrides", [(), ("relocalisation.patience_s=1",)])
 def test_frames_lost_before_a_new_map_are_posed_in_it(
-    loop_frames: tuple[CameraIntrinsics, list[Frame]],
+    loop_frames: tuple[CameraIntrinsics, list[Frame]], overrides: tuple[str, ...]
 ) -> None:
     """The camera jumps into another room: relocalisation cannot succeed, a new segment starts,
     and the frames lost before it (and seen before its initialisation reference) are tracked
@@ -371,7 +372,7 @@ def test_frames_lost_before_a_new_map_are_posed_in_it(
     )  # fmt: skip
     renderer = SceneRenderer(config)
     elsewhere = [Frame(60 + i, (60 + i) / 30, renderer.frame(200 + i).image.copy(), None) for i in range(140)]
-    frontend = create(camera)
+    frontend = create(camera, overrides)
     results: dict[int, TrackResult] = {}
     for result in run(frontend, [*frames[:60], *elsewhere]):
         results[result.frame_index] = result
@@ -379,15 +380,17 @@ def test_frames_lost_before_a_new_map_are_posed_in_it(
     assert all(results[i].segment == 0 and results[i].pose is not None for i in range(20, 60))
     jumped = [results[i] for i in range(60, 200)]
     assert not any(r.state == "relocalised" for r in jumped), "relocalised in another room"
-    # The new map waits out relocalisation.patience_s (1 s: frames 60-90); what it does not see of
-    # those frames stays unposed (here the first 21), everything after is posed in it.
-    patience = 30 * frontend.config.relocalisation.patience_s
+    # The new map waits out the patience (10 frames, or relocalisation.patience_s = 1 s: frames
+    # 60-90); what it does not see of those frames stays unposed (with 1 s the first 21).
+    settings = frontend.config.relocalisation
+    patience = max(settings.patience, 30 * settings.patience_s)
     first_keyframe = min(kf.frame_index for kf in frontend.keyframes() if kf.segment == 1)
     assert first_keyframe >= 60 + patience
     posed = [r for r in jumped if r.pose is not None]
     assert all(r.segment == 1 for r in posed)
-    assert len(posed) >= len(jumped) - patience
-    assert all(r.pose is not None for r in jumped[int(patience) :])
+    unposed = 0 if settings.patience_s == 0 else patience
+    assert len(posed) >= len(jumped) - unposed
+    assert all(r.pose is not None for r in jumped[int(unposed) :])
     # Backwards in time the poses continue the new map's motion (the camera moves smoothly).
     centres = np.array([r.pose[:3, 3] for r in jumped if r.pose is not None])
     steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)

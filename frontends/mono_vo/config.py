@@ -192,8 +192,8 @@ class RelocalisationConfig:
     min_inliers: int = 50
     #: Frames with features that may fail to relocalise before a new map segment starts.
     patience: int = 10
-    #: Seconds lost that a new segment also waits for (ORB-SLAM3: 3) (docs/2026-12-06-walking-people.md)
-    patience_s: float = 1.0
+    #: Seconds lost a new segment also waits for; 0: off (ORB-SLAM3: 3) (docs/2026-12-06-walking-people.md)
+    patience_s: float = 0.0
     #: Unposed frames (the newest) kept to be tracked backwards once the camera is posed; 0: none.
     backfill_frames: int = 90
     #: Largest centre sigma of a backfilled frame (x the resumed frame's) (docs/2026-12-06-config-evidence.md)

@@ -18,7 +18,8 @@ the next frame with ``prefetch``); then, by state,
   features that fail and ``patience_s`` seconds (ORB-SLAM3's "recently lost" state), the segment
   is closed and a new one initialises (``segment`` += 1). Its poses live in a new map frame: they
   are never spliced into the old one. A person walking past close to the camera hides half the
-  view for a second or two; the old map is usually found again after that.
+  view for a second or two, and the old map is usually found again after that; but frames lost
+  while waiting may stay unposed, so ``patience_s`` is 0 (off) by default.
 
 A frame with (almost) no features is "lost" at once and costs the patience nothing: a 20-frame
 blackout ends in relocalisation if the camera comes back to a known view. A view of the map's
