@@ -35,6 +35,7 @@ import pycolmap
 
 from frontends.config import load_config
 from frontends.errors import ConfigError
+from frontends.mono_vo.masking import inside
 from frontends.orb import match_descriptors
 from frontends.types import CameraIntrinsics, Keyframe
 from lcd.objects.filtering import WALKING_LABELS
@@ -224,9 +225,7 @@ def _unmasked(keyframe: Keyframe, labels: Sequence[str]) -> np.ndarray:
     keep = np.ones(len(keypoints), dtype=bool)
     for obj in getattr(keyframe, "objects", ()):
         if obj.label in labels:
-            x0, y0, x1, y1 = obj.box
-            x, y = keypoints[:, 0], keypoints[:, 1]
-            keep &= ~((x >= x0) & (x < x1) & (y >= y0) & (y < y1))
+            keep &= ~inside(keypoints, obj.box)
     return np.flatnonzero(keep)
 
 
