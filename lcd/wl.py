@@ -227,9 +227,11 @@ class _Postings:
     def __init__(self) -> None:
         self.start = _Buffer(np.int64)
         self.size = _Buffer(np.int64)
-        self.graph = _Buffer(np.int64)
-        self.run = _Buffer(np.int64)
-        self.count = _Buffer(np.int64)
+        # Graph rows, run lengths and counts stay far below 2**31; int32 halves the largest part of
+        # the database (docs/2026-12-06-long-runs.md).
+        self.graph = _Buffer(np.int32)
+        self.run = _Buffer(np.int32)
+        self.count = _Buffer(np.int32)
 
     def add_chains(self, count: int) -> None:
         self.start.extend(np.zeros(count, dtype=np.int64))
@@ -249,7 +251,7 @@ class _Postings:
             _, source = _ranges(begin[grow], used[grow])
             _, target = _ranges(moved, used[grow])
             for arena in (self.graph, self.run, self.count):
-                arena.extend(np.zeros(int(capacity.sum()), dtype=np.int64))
+                arena.extend(np.zeros(int(capacity.sum()), dtype=np.int32))
                 data = arena.view()
                 data[target] = data[source]
             begin[grow] = moved
@@ -282,9 +284,9 @@ class _Postings:
         self.start, self.size = _Buffer(np.int64, start), _Buffer(np.int64, size)
         arenas = []
         for name in ("graph", "run", "count"):
-            arena = np.zeros(int(capacity.sum()), dtype=np.int64)
+            arena = np.zeros(int(capacity.sum()), dtype=np.int32)
             arena[position] = state[name]
-            arenas.append(_Buffer(np.int64, arena))
+            arenas.append(_Buffer(np.int32, arena))
         self.graph, self.run, self.count = arenas
 
 

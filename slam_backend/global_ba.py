@@ -80,6 +80,8 @@ class GlobalBundleAdjustmentConfig:
     weak_keyframe_share: float = 0.25
     #: Observations at most (above: an evenly spaced share of the points; memory and time bounded); 0: all.
     max_observations: int = 100_000
+    #: Map-point observations kept per frame to re-pose it (an evenly spaced share; memory); 0: all.
+    frame_max_observations: int = 200
 
     def __post_init__(self) -> None:
         if self.pixel_sigma <= 0 or self.huber_k <= 0:
@@ -88,8 +90,8 @@ class GlobalBundleAdjustmentConfig:
             raise ConfigError("global_ba: iterations must be >= 1 and min_observations >= 2")
         if self.fuse_radius_px < 0 or not 0 < self.fuse_max_hamming <= 256:
             raise ConfigError("global_ba: fuse_radius_px must be >= 0 and fuse_max_hamming in 1..256")
-        if self.max_observations < 0:
-            raise ConfigError("global_ba: max_observations must be >= 0 (0: all)")
+        if self.max_observations < 0 or self.frame_max_observations < 0:
+            raise ConfigError("global_ba: max_observations and frame_max_observations must be >= 0 (0: all)")
         if not 0 <= self.weak_keyframe_share < 1:
             raise ConfigError("global_ba: weak_keyframe_share must be in [0, 1)")
 

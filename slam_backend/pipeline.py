@@ -143,6 +143,8 @@ class LoopClosingConfig:
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
+    #: People and animals seen by a keyframe this close in time (s) count as in it too; 0: its own only.
+    walking_memory_s: float = 0.5
     #: Consistent loops needed to join two map segments; 1: the first (docs/2026-12-06-config-evidence.md)
     bridge_support: int = 2
     #: Confidence of the chi2 test between loops that bridge two segments.
@@ -181,6 +183,8 @@ class LoopClosingConfig:
             raise ConfigError("loop_closing: bridge_support must be >= 1 and bridge_confidence in (0, 1)")
         if not self.bridge_min_interval_s >= 0.0:
             raise ConfigError("loop_closing: bridge_min_interval_s must be >= 0")
+        if self.walking_memory_s < 0:
+            raise ConfigError(f"loop_closing: walking_memory_s must be >= 0, got {self.walking_memory_s}")
         if self.defer_retries < 0 or self.defer_min_shared_points < 1:
             raise ConfigError(
                 "loop_closing: defer_retries must be >= 0 and defer_min_shared_points >= 1, got "
@@ -536,15 +540,20 @@ class LoopClosing:
             return
         start = time.perf_counter()
         estimates = self.backend.estimate()
+        # As ORB-SLAM3 adjusts the map a loop closed in: segments no accepted loop reaches (joined to
+        # the others only by segment links) have nothing to gain, and their own local BA used
+        # every point, where the global one thins them (docs/2026-12-06-long-runs.md).
+        looped = {self._keyframes[k].segment for loop in accepted for k in (loop.query, loop.match)}
         self.adjusted = global_bundle_adjustment(
-            list(self._keyframes.values()), estimates, accepted, self.camera, config
-        )
+            [kf for kf in self._keyframes.values() if kf.segment in looped], estimates, accepted, self.camera,
+            config,
+        )  # fmt: skip
         self.counters.seconds["global_ba"] += time.perf_counter() - start
         if self.adjusted is None:
             return
         if config.repose_frames:
             start = time.perf_counter()
-            self._repose_frames(self.adjusted)
+            self._repose_frames(self.adjusted, looped)
             self.counters.seconds["repose_frames"] += time.perf_counter() - start
         s = self.adjusted.stats
         log.info(
@@ -554,13 +563,14 @@ class LoopClosing:
             s.median_error_before_px, s.median_error_after_px, self.frames_reposed, len(self._frames),
         )  # fmt: skip
 
-    def _repose_frames(self, adjusted: AdjustedMap) -> None:
+    def _repose_frames(self, adjusted: AdjustedMap, segments: set[int]) -> None:
+        """Pose the frames of the adjusted ``segments`` again against the adjusted points."""
         assert self.camera is not None
         camera = colmap_camera(self.camera)
         for index, posed in self._frames.items():
-            if posed.observations is None or posed.anchor in adjusted.followers:
-                continue
             segment = self._keyframes[posed.anchor].segment
+            if posed.observations is None or posed.anchor in adjusted.followers or segment not in segments:
+                continue
             initial = posed.pose(adjusted.poses)
             pose = repose_frame(adjusted, segment, posed.observations, initial, camera, self.config.global_ba)
             if pose is not None:
@@ -581,11 +591,26 @@ class LoopClosing:
             relative = np.eye(4) if own else np.linalg.inv(anchor.pose) @ result.pose
             self._frames[result.frame_index] = _PosedFrame(
                 result.frame_index, result.timestamp, anchor.id, relative,
-                observations=None if own or not self._keeps_observations else result.observations,
+                observations=None if own or not self._keeps_observations else self._kept(result.observations),
             )  # fmt: skip
             if not own:
                 self._between.setdefault(result.segment, []).append(result.frame_index)
         return records
+
+    def _kept(self, observations: PointObservations | None) -> PointObservations | None:
+        """What a frame keeps of its observations for re-posing: at most ``frame_max_observations``
+        (evenly spaced), ids as int32. Kept for every frame of the run, so they bound its memory:
+        900 observations took 14 kB per frame (docs/2026-12-06-long-runs.md)."""
+        if observations is None:
+            return None
+        keypoints, ids = observations.keypoints, observations.point_ids
+        cap = self.config.global_ba.frame_max_observations
+        if 0 < cap < len(ids):
+            chosen = np.linspace(0, len(ids) - 1, cap).round().astype(np.int64)
+            keypoints, ids = keypoints[chosen], ids[chosen]
+        if len(ids) == 0 or int(ids.max()) < np.iinfo(np.int32).max:
+            ids = ids.astype(np.int32)
+        return PointObservations(np.asarray(keypoints, dtype=np.float32), ids)
 
     def _link_frames(self, keyframe: Keyframe) -> None:
         """Give the frames posed since the segment's previous keyframe their second anchor."""
@@ -766,8 +791,34 @@ class LoopClosing:
         return replace(keyframe, objects=found)
 
     def _job_copy(self, keyframe: Keyframe) -> Keyframe:
-        """A shallow copy of ``keyframe`` for the verifier, with its detected objects."""
-        return replace(keyframe, objects=keyframe.objects or self._keyframe_objects().get(keyframe.id, ()))
+        """A shallow copy of ``keyframe`` for the verifier, with its detected objects and the people
+        and animals its neighbours saw (``_walking_nearby``)."""
+        objects = keyframe.objects or self._keyframe_objects().get(keyframe.id, ())
+        return replace(keyframe, objects=(*objects, *self._walking_nearby(keyframe)))
+
+    def _walking_nearby(self, keyframe: Keyframe) -> list[DetectedObject]:
+        """People and animals the keyframes of ``keyframe``'s segment up to ``walking_memory_s`` away
+        saw. A detector misses some views of a person, and a person who walked through both views
+        of a loop joins them wrongly (docs/2026-12-06-walking-people.md); one who is in view for
+        a moment before and after is likely in view between."""
+        window = self.config.walking_memory_s
+        if window <= 0:
+            return []
+        labels = set(self.config.movable_labels) - set(VEHICLE_LABELS)
+        objects, found = self._keyframe_objects(), []
+        # Keyframes not settled yet: their detections wait in _detections, by frame.
+        unsettled = {k.id: k for k in self._unsettled}
+        for step in (-1, 1):
+            other = self._keyframes.get(keyframe.id + step) or unsettled.get(keyframe.id + step)
+            while (
+                other is not None
+                and other.segment == keyframe.segment
+                and abs(other.timestamp - keyframe.timestamp) <= window
+            ):
+                seen = objects.get(other.id, self._detections.get(other.frame_index, ()))
+                found += [o for o in seen if o.label in labels]
+                other = self._keyframes.get(other.id + step) or unsettled.get(other.id + step)
+        return found
 
     def _keyframe_objects(self) -> dict[int, tuple[DetectedObject, ...]]:
         """``_objects``, made empty when resuming a checkpoint from before it existed."""

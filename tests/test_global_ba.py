@@ -213,6 +213,12 @@ def test_repose_frame_from_adjusted_points() -> None:
     reposed = repose_frame(adjusted, 0, observations, start, camera, config)
     assert reposed is not None
     assert np.linalg.norm(reposed[:3, 3] - pose[:3, 3]) < 0.005
+    # What loop closing keeps of a frame's observations (frame_max_observations) poses it as well.
+    assert len(seen) > config.frame_max_observations
+    kept = np.linspace(0, len(seen) - 1, config.frame_max_observations).round().astype(int)
+    thinned = PointObservations(observations.keypoints[kept], observations.point_ids[kept].astype(np.int32))
+    from_kept = repose_frame(adjusted, 0, thinned, start, camera, config)
+    assert from_kept is not None and np.linalg.norm(from_kept[:3, 3] - pose[:3, 3]) < 0.005
     # Points of another segment, too few adjusted points, or a start far from what the points say:
     # the frame keeps the pose its keyframes give it.
     assert repose_frame(adjusted, 1, observations, start, camera, config) is None
@@ -230,6 +236,7 @@ def test_repose_frame_from_adjusted_points() -> None:
         ("fuse_radius_px", -1.0),
         ("fuse_max_hamming", 0),
         ("max_observations", -1),
+        ("frame_max_observations", -1),
         ("weak_keyframe_share", 1.0),
         ("weak_keyframe_share", -0.1),
     ],
@@ -315,3 +322,74 @@ def test_a_point_budget_bounds_the_adjustment_and_still_closes_the_loop() -> Non
     assert budget.stats.points < 0.6 * full.stats.points
     # 0.0066 m against 0.0053 m with every point, from 0.070 m.
     assert _aligned_error(budget.poses, poses) < 0.15 * before
+
+
+class _Proposes:
+    """A loop detector proposing the scene's three loops."""
+
+    name = "proposes"
+    threshold = 0.5
+
+    def add(self, keyframe: Keyframe) -> list:
+        from lcd.base import LoopCandidate
+
+        match = {41: 1, 42: 2, 43: 3}.get(keyframe.id)
+        return [] if match is None else [LoopCandidate(keyframe.id, match, 10.0, {})]
+
+
+class _TrueLoops:
+    """A verifier answering the true relative pose, resting on the loops' keypoint pairs."""
+
+    name = "true-loops"
+
+    def __init__(self, poses: list[np.ndarray], loops: list[LoopCorrespondences]) -> None:
+        self.poses, self.pairs = poses, {(loop.query, loop.match): loop.pairs for loop in loops}
+
+    def verify(self, query: Keyframe, match: Keyframe):
+        from slam_backend.verify import Verification
+
+        relative = np.linalg.inv(self.poses[match.id]) @ self.poses[query.id]
+        pairs = self.pairs[(query.id, match.id)]
+        covariance = np.diag([1e-6] * 3 + [1e-4] * 3 + [1e-6])
+        return Verification(query.id, match.id, True, "", len(pairs), len(pairs), relative, covariance, pairs)
+
+
+def test_loop_closing_adjusts_only_the_segments_its_loops_reach() -> None:
+    """After the drifted loop (segment 0) another map segment begins, which no loop reaches: the
+    global bundle adjustment leaves it where the pose graph has it (ORB-SLAM3 adjusts the map the
+    loop closed in), and poses segment 0 as without it."""
+    from frontends.base import TrackResult
+    from slam_backend.pipeline import LoopClosing, LoopClosingConfig
+    from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
+
+    poses, keyframes, loops, estimates, _ = _loop_scene()
+    covariance = np.diag([1e-6] * 3 + [1e-4] * 3 + [1e-6])
+
+    def closing_over(extra_segment: bool) -> LoopClosing:
+        closing = LoopClosing(
+            GtsamPoseGraph(BackendConfig()), _Proposes(), None, _TrueLoops(poses, loops),  # type: ignore[arg-type]
+            LoopClosingConfig(settle_keyframes=0), camera=CAMERA,
+        )  # fmt: skip
+        stream = [replace(kf, pose=estimates[kf.id], odometry_covariance=covariance) for kf in keyframes]
+        if extra_segment:  # the first ten keyframes seen again in a new map (ids and poses of its own)
+            shift = np.eye(4)
+            shift[:3, 3] = [0.3, -0.2, 0.1]
+            stream += [
+                replace(kf, id=KEYFRAMES + k, frame_index=10 * (KEYFRAMES + k),
+                        timestamp=float(KEYFRAMES + k), pose=shift @ estimates[k], segment=1)
+                for k, kf in enumerate(stream[:10])
+            ]  # fmt: skip
+        for kf in stream:
+            closing.add(TrackResult(kf.frame_index, kf.timestamp, "tracking", kf.pose, kf.segment, kf))
+        closing.finish()
+        return closing
+
+    alone, both = closing_over(False), closing_over(True)
+    assert both.adjusted is not None and alone.adjusted is not None
+    assert both.adjusted.stats.keyframes == alone.adjusted.stats.keyframes == KEYFRAMES
+    graph = both.backend.estimate()
+    for kf_id in range(KEYFRAMES, KEYFRAMES + 10):
+        np.testing.assert_allclose(both.adjusted.poses[kf_id], graph[kf_id], atol=1e-9)
+    for kf_id in range(KEYFRAMES):
+        np.testing.assert_allclose(both.adjusted.poses[kf_id], alone.adjusted.poses[kf_id], atol=1e-6)
+    assert _aligned_error(both.adjusted.poses, poses) < 0.5 * _aligned_error(estimates, poses)

@@ -13,11 +13,15 @@ import cv2
 import numpy as np
 import pytest
 
+from frontends.base import TrackResult
 from frontends.orb import detect_orb
 from frontends.synth import SynthConfig
 from frontends.synth.render import SceneRenderer
-from frontends.types import DetectedObject, Keyframe
-from slam_backend.verify import VerifierConfig, colmap_camera, verify_two_view
+from frontends.types import DetectedObject, Frame, Keyframe
+from lcd.base import LoopCandidate
+from slam_backend.pipeline import LoopClosing, LoopClosingConfig
+from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
+from slam_backend.verify import PycolmapVerifier, Verification, VerifierConfig, colmap_camera, verify_two_view
 
 #: (query, match) frames of the scene whose two-view pose the person spoiled.
 PAIRS = ((7357, 816), (7800, 1284))
@@ -77,3 +81,78 @@ def test_walking_people_are_left_out_of_the_two_view_pose(
     # A verifier told to keep every class matches the people again.
     kept = verify_two_view(query_seen, match_seen, camera, VerifierConfig(planar_pose=True, ignore_labels=()))
     assert kept.inliers == fooled.inliers
+
+
+class MissesSome:
+    """The scene's walking people as a detector that misses them in the ``missed`` frames."""
+
+    name = "misses-some"
+
+    def __init__(self, renderer: SceneRenderer, missed: set[int]) -> None:
+        self.renderer, self.missed = renderer, missed
+
+    def detect(self, image: np.ndarray, frame: Frame | None = None) -> list[DetectedObject]:
+        assert frame is not None
+        if frame.index in self.missed:
+            return []
+        objects = self.renderer.frame(frame.index).objects
+        return [DetectedObject("person", 0.9, tuple(float(v) for v in o.box)) for o in objects if o.movable]  # type: ignore[misc]
+
+
+class ProposeOnce:
+    """A loop detector that proposes keyframe ``match`` for keyframe ``query``."""
+
+    name = "propose-once"
+    threshold = 0.5
+
+    def __init__(self, query: int, match: int) -> None:
+        self.query, self.match = query, match
+
+    def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        return [LoopCandidate(keyframe.id, self.match, 10.0, {})] if keyframe.id == self.query else []
+
+
+class Recording(PycolmapVerifier):
+    """The pycolmap verifier, keeping the keyframes it was given."""
+
+    def verify(self, query: Keyframe, match: Keyframe) -> Verification:
+        self.given = (query, match)
+        return super().verify(query, match)
+
+
+@pytest.mark.parametrize("memory_s", [0.0, LoopClosingConfig().walking_memory_s])
+def test_people_seen_by_neighbouring_keyframes_are_left_out(renderer: SceneRenderer, memory_s: float) -> None:
+    """The detector missed the person in both keyframes of the loop, but saw them in the keyframes
+    8 frames (0.27 s) before and after each: loop closing hands those boxes to the verifier."""
+    query_frame, match_frame = PAIRS[1]
+    frames = [match_frame + d for d in (-8, 0, 8)] + [query_frame + d for d in (-8, 0, 8)]
+    intrinsics = SynthConfig().intrinsics
+    verifier = Recording(intrinsics, VerifierConfig(planar_pose=True))
+    closing = LoopClosing(
+        GtsamPoseGraph(BackendConfig()),
+        ProposeOnce(4, 1),  # type: ignore[arg-type]
+        MissesSome(renderer, {query_frame, match_frame}),  # type: ignore[arg-type]
+        verifier,
+        LoopClosingConfig(settle_keyframes=1, walking_memory_s=memory_s),
+    )
+    for kf_id, frame in enumerate(frames):
+        rendered = renderer.frame(frame)
+        features = detect_orb(cv2.cvtColor(rendered.image, cv2.COLOR_BGR2GRAY))
+        pose, image = rendered.pose.copy(), rendered.image
+        keyframe = Keyframe(
+            kf_id, frame, rendered.timestamp, pose, features.keypoints, features.descriptors, image=image
+        )
+        closing.movable_boxes(Frame(frame, rendered.timestamp, rendered.image))  # as mono-vo asks
+        closing.add(TrackResult(frame, rendered.timestamp, "tracking", pose, 0, keyframe))
+    closing.finish()
+    query, match = verifier.given
+    assert (query.frame_index, match.frame_index) == (query_frame, match_frame)
+    two_view = verify_two_view(query, match, colmap_camera(intrinsics), VerifierConfig(planar_pose=True))
+    assert two_view.passed and two_view.match_from_query is not None
+    rotation, direction = _errors(two_view.match_from_query, query, match)
+    if memory_s == 0:  # the keyframes' own detections only: none
+        assert not query.objects and not match.objects
+        assert rotation > 3.0 and direction > 20.0
+    else:  # the query's are those of the keyframes before it and of the one after (not settled yet)
+        assert len(query.objects) == len(match.objects) == 2
+        assert rotation < 1.0 and direction < 5.0
