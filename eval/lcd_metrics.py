@@ -32,10 +32,14 @@ from slam_backend.lie import as_4x4
 
 def gt_references(pairs: np.ndarray) -> dict[int, np.ndarray]:
     """Query frame -> sorted reference frames, from (query, ref) pairs."""
-    refs: dict[int, list[int]] = {}
-    for query, ref in np.asarray(pairs, dtype=np.int64).reshape(-1, 2).tolist():
-        refs.setdefault(query, []).append(ref)
-    return {q: np.array(sorted(r), dtype=np.int64) for q, r in refs.items()}
+    # Views into one sorted array: a 9000-frame scene has 2.2 M pairs, which as Python lists took
+    # 345 MB at the end of a run (docs/2026-12-06-long-runs.md).
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    ordered = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    queries, starts = np.unique(ordered[:, 0], return_index=True)
+    refs = np.ascontiguousarray(ordered[:, 1])
+    ends = np.append(starts[1:], len(refs))
+    return {q: refs[a:b] for q, a, b in zip(queries.tolist(), starts.tolist(), ends.tolist(), strict=True)}
 
 
 def is_true_match(match: int, references: np.ndarray | None, tolerance: int) -> bool:

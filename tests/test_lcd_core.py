@@ -117,8 +117,15 @@ def test_label_matching_tolerates_40_percent_missing() -> None:
 
 
 def test_metrics_known_answers() -> None:
-    refs = gt_references(np.array([[10, 1], [10, 2], [11, 3]]))
-    assert refs[10].tolist() == [1, 2]
+    refs = gt_references(np.array([[10, 2], [11, 3], [10, 1]]))
+    assert refs[10].tolist() == [1, 2] and refs[11].tolist() == [3] and set(refs) == {10, 11}
+    # Any order, with repeats: each query's references, sorted.
+    pairs = np.random.default_rng(0).integers(0, 50, (500, 2))
+    expected: dict[int, list[int]] = {}
+    for query, ref in pairs.tolist():
+        expected.setdefault(query, []).append(ref)
+    found = {q: r.tolist() for q, r in gt_references(pairs).items()}
+    assert found == {q: sorted(r) for q, r in expected.items()}
     assert is_true_match(3, refs[10], tolerance=1) and not is_true_match(4, refs[10], tolerance=1)
     assert has_reachable_loop(refs[11], [0, 5], tolerance=2) and not has_reachable_loop(refs[11], [6], 2)
     scores = np.array([0.9, 0.8, 0.7, 0.6, 0.5])
