@@ -80,8 +80,8 @@ class GlobalBundleAdjustmentConfig:
     weak_keyframe_share: float = 0.25
     #: Observations at most (above: an evenly spaced share of the points; memory and time bounded); 0: all.
     max_observations: int = 100_000
-    #: Map-point observations kept per frame to re-pose it (an evenly spaced share; memory); 0: all.
-    frame_max_observations: int = 200
+    #: Map-point observations kept per frame to re-pose it (evenly spaced; 200 cost loop 2 18 % ATE); 0: all.
+    frame_max_observations: int = 0
 
     def __post_init__(self) -> None:
         if self.pixel_sigma <= 0 or self.huber_k <= 0:

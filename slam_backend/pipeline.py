@@ -598,9 +598,9 @@ class LoopClosing:
         return records
 
     def _kept(self, observations: PointObservations | None) -> PointObservations | None:
-        """What a frame keeps of its observations for re-posing: at most ``frame_max_observations``
-        (evenly spaced), ids as int32. Kept for every frame of the run, so they bound its memory:
-        900 observations took 14 kB per frame (docs/2026-12-06-long-runs.md)."""
+        """What a frame keeps of its observations for re-posing: ids as int32 and, if set, at most
+        ``frame_max_observations`` (evenly spaced). Kept for every frame of the run: ~900
+        observations took 14 kB per frame (docs/2026-12-06-long-runs.md)."""
         if observations is None:
             return None
         keypoints, ids = observations.keypoints, observations.point_ids
@@ -794,17 +794,19 @@ class LoopClosing:
         """A shallow copy of ``keyframe`` for the verifier, with its detected objects and the people
         and animals its neighbours saw (``_walking_nearby``)."""
         objects = keyframe.objects or self._keyframe_objects().get(keyframe.id, ())
-        return replace(keyframe, objects=(*objects, *self._walking_nearby(keyframe)))
+        return replace(keyframe, objects=(*objects, *self._walking_missed(keyframe, objects)))
 
-    def _walking_nearby(self, keyframe: Keyframe) -> list[DetectedObject]:
+    def _walking_missed(self, keyframe: Keyframe, own: tuple[DetectedObject, ...]) -> list[DetectedObject]:
         """People and animals the keyframes of ``keyframe``'s segment up to ``walking_memory_s`` away
-        saw. A detector misses some views of a person, and a person who walked through both views
-        of a loop joins them wrongly (docs/2026-12-06-walking-people.md); one who is in view for
-        a moment before and after is likely in view between."""
+        saw where ``keyframe``'s own detections (``own``) have none. A detector misses some views of
+        a person, and a person who walked through both views of a loop joins them wrongly
+        (docs/2026-12-06-walking-people.md); one in view a moment before and after is likely in view
+        between. A person the keyframe saw itself is where its own box says."""
         window = self.config.walking_memory_s
         if window <= 0:
             return []
         labels = set(self.config.movable_labels) - set(VEHICLE_LABELS)
+        seen_here = [o.box for o in own if o.label in labels]
         objects, found = self._keyframe_objects(), []
         # Keyframes not settled yet: their detections wait in _detections, by frame.
         unsettled = {k.id: k for k in self._unsettled}
@@ -816,7 +818,9 @@ class LoopClosing:
                 and abs(other.timestamp - keyframe.timestamp) <= window
             ):
                 seen = objects.get(other.id, self._detections.get(other.frame_index, ()))
-                found += [o for o in seen if o.label in labels]
+                found += [
+                    o for o in seen if o.label in labels and not any(_intersect(o.box, b) for b in seen_here)
+                ]
                 other = self._keyframes.get(other.id + step) or unsettled.get(other.id + step)
         return found
 
@@ -1254,6 +1258,11 @@ class LoopClosing:
             pose = reposed[index] if index in reposed else posed.pose(anchors)
             poses.append((index, posed.timestamp, pose))
         return poses
+
+
+def _intersect(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    """Whether two boxes (x0, y0, x1, y1) overlap."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def _recent_velocity(track: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray] | None:

@@ -213,9 +213,9 @@ def test_repose_frame_from_adjusted_points() -> None:
     reposed = repose_frame(adjusted, 0, observations, start, camera, config)
     assert reposed is not None
     assert np.linalg.norm(reposed[:3, 3] - pose[:3, 3]) < 0.005
-    # What loop closing keeps of a frame's observations (frame_max_observations) poses it as well.
-    assert len(seen) > config.frame_max_observations
-    kept = np.linspace(0, len(seen) - 1, config.frame_max_observations).round().astype(int)
+    # What loop closing keeps of a frame's observations with frame_max_observations=200 poses it too.
+    assert len(seen) > 200
+    kept = np.linspace(0, len(seen) - 1, 200).round().astype(int)
     thinned = PointObservations(observations.keypoints[kept], observations.point_ids[kept].astype(np.int32))
     from_kept = repose_frame(adjusted, 0, thinned, start, camera, config)
     assert from_kept is not None and np.linalg.norm(from_kept[:3, 3] - pose[:3, 3]) < 0.005
