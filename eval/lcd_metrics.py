@@ -38,7 +38,7 @@ def gt_references(pairs: np.ndarray) -> dict[int, np.ndarray]:
     ordered = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     queries, starts = np.unique(ordered[:, 0], return_index=True)
     refs = np.ascontiguousarray(ordered[:, 1])
-    ends = np.append(starts[1:], len(refs))
+    ends = np.append(starts[1:], len(refs))[: len(starts)]
     return {q: refs[a:b] for q, a, b in zip(queries.tolist(), starts.tolist(), ends.tolist(), strict=True)}
 
 

@@ -126,6 +126,7 @@ def test_metrics_known_answers() -> None:
         expected.setdefault(query, []).append(ref)
     found = {q: r.tolist() for q, r in gt_references(pairs).items()}
     assert found == {q: sorted(r) for q, r in expected.items()}
+    assert gt_references(np.zeros((0, 2), dtype=np.int64)) == {}  # a scene without revisits
     assert is_true_match(3, refs[10], tolerance=1) and not is_true_match(4, refs[10], tolerance=1)
     assert has_reachable_loop(refs[11], [0, 5], tolerance=2) and not has_reachable_loop(refs[11], [6], 2)
     scores = np.array([0.9, 0.8, 0.7, 0.6, 0.5])
