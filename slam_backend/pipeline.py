@@ -143,7 +143,7 @@ class LoopClosingConfig:
     correct_frontend: bool = True
     #: Classes a masking frontend keeps out of its map (the object filter's movable classes).
     movable_labels: tuple[str, ...] = MOVABLE_LABELS
-    #: People and animals seen by a keyframe this close in time (s) count as in it too; 0: its own only.
+    #: People and animals seen by keyframes this close in time (s) count where a keyframe saw none; 0: off.
     walking_memory_s: float = 0.5
     #: Consistent loops needed to join two map segments; 1: the first (docs/2026-12-06-config-evidence.md)
     bridge_support: int = 2
@@ -792,7 +792,7 @@ class LoopClosing:
 
     def _job_copy(self, keyframe: Keyframe) -> Keyframe:
         """A shallow copy of ``keyframe`` for the verifier, with its detected objects and the people
-        and animals its neighbours saw (``_walking_nearby``)."""
+        and animals its neighbours saw where it saw none (``_walking_missed``)."""
         objects = keyframe.objects or self._keyframe_objects().get(keyframe.id, ())
         return replace(keyframe, objects=(*objects, *self._walking_missed(keyframe, objects)))
 
