@@ -88,6 +88,7 @@ import numpy as np
 
 from frontends.base import PointObservations, TrackResult
 from frontends.errors import ConfigError
+from frontends.mono_vo.masking import iou
 from frontends.types import CameraIntrinsics, DetectedObject, Frame, Keyframe
 from lcd.base import LoopCandidate, LoopDetector, ObjectDetector
 from lcd.objects.filtering import MOVABLE_LABELS, VEHICLE_LABELS
@@ -811,17 +812,15 @@ class LoopClosing:
         # Keyframes not settled yet: their detections wait in _detections, by frame.
         unsettled = {k.id: k for k in self._unsettled}
         for step in (-1, 1):
-            other = self._keyframes.get(keyframe.id + step) or unsettled.get(keyframe.id + step)
+            kf_id = keyframe.id + step
             while (
-                other is not None
+                (other := self._keyframes.get(kf_id) or unsettled.get(kf_id)) is not None
                 and other.segment == keyframe.segment
                 and abs(other.timestamp - keyframe.timestamp) <= window
             ):
                 seen = objects.get(other.id, self._detections.get(other.frame_index, ()))
-                found += [
-                    o for o in seen if o.label in labels and not any(_intersect(o.box, b) for b in seen_here)
-                ]
-                other = self._keyframes.get(other.id + step) or unsettled.get(other.id + step)
+                found += [o for o in seen if o.label in labels and all(iou(o.box, b) == 0 for b in seen_here)]
+                kf_id += step
         return found
 
     def _keyframe_objects(self) -> dict[int, tuple[DetectedObject, ...]]:
@@ -1258,11 +1257,6 @@ class LoopClosing:
             pose = reposed[index] if index in reposed else posed.pose(anchors)
             poses.append((index, posed.timestamp, pose))
         return poses
-
-
-def _intersect(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
-    """Whether two boxes (x0, y0, x1, y1) overlap."""
-    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def _recent_velocity(track: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray] | None:

@@ -165,3 +165,10 @@ def test_people_seen_by_neighbouring_keyframes_are_left_out(
     else:  # the query's are those of the keyframes before it and of the one after (not settled yet)
         assert len(query.objects) == len(match.objects) == 2
         assert rotation < 1.0 and direction < 5.0
+
+
+def test_a_negative_walking_memory_is_a_config_error() -> None:
+    from frontends.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="walking_memory_s"):
+        LoopClosingConfig(walking_memory_s=-0.5)
