@@ -37,7 +37,9 @@ class LoopDetector(Protocol):
     ``keyframe.id`` values increase. A detector never proposes a keyframe inside its own temporal
     window of the query. ``threshold`` is the score at or above which a candidate counts as a loop.
     A detector may also have ``proposal_threshold``, the lowest score a SLAM run checks geometrically;
-    without it the run checks scores from ``loop_closing.proposal_ratio`` x ``threshold`` up.
+    without it the run checks scores from ``loop_closing.proposal_ratio`` x ``threshold`` up, and
+    ``release()``, which a SLAM run calls once the stream has ended (before its end-of-run bundle
+    adjustment) to free the keyframe database; ``add`` is not called after it.
     """
 
     name: str

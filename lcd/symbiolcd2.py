@@ -133,11 +133,8 @@ class SymbioLCD2:
         self.proposal_threshold = config.proposal_threshold
         self.temporal_window = config.temporal_window
         self.vocabulary = open_vocabulary(config.vocabulary, config.online)
-        self.kernel: WLKernel | GrakelWL = (
-            WLKernel(config.iterations, config.idf_power)
-            if config.wl_backend == "ours"
-            else GrakelWL(config.iterations)
-        )
+        self.kernel = self._new_kernel()
+        self._released = False
         self.keyframe_ids: list[int] = []
         self.timestamps: list[float] = []
         self.matchable: list[bool] = []
@@ -162,7 +159,21 @@ class SymbioLCD2:
             words = self.vocabulary.words_at_level(keyframe.descriptors, self.config.word_level)
         return build_graph(keyframe.keypoints, words, objects, self.config.graph)
 
+    def release(self) -> None:
+        """Free the keyframe database (the WL kernel's graphs and postings): the stream has ended.
+        Later ``add`` calls raise; the database is most of a long run's memory."""
+        self.kernel = self._new_kernel()
+        self._released = True
+
+    def _new_kernel(self) -> WLKernel | GrakelWL:
+        config = self.config
+        if config.wl_backend == "ours":
+            return WLKernel(config.iterations, config.idf_power)
+        return GrakelWL(config.iterations)
+
     def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        if self._released:
+            raise RuntimeError(f"{self.name}: add() after release(); the keyframe database was freed")
         graph = self.graph_of(keyframe)
         self.last_graph = graph
         similarity = self.kernel.add_and_query(graph)

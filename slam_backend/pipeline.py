@@ -517,8 +517,9 @@ class LoopClosing:
         return records
 
     def finish(self) -> list[LoopRecord]:
-        """Settle the keyframes still waiting (the stream ended), then run the global bundle
-        adjustment if a loop was accepted; returns the loop records of the settled keyframes."""
+        """Settle the keyframes still waiting (the stream ended), release the loop detector's
+        database (its optional ``release()``), then run the global bundle adjustment if a loop was
+        accepted; returns the loop records of the settled keyframes."""
         records: list[LoopRecord] = []
         while self._unsettled:
             records += self._add_keyframe(self._unsettled.pop(0))
@@ -527,6 +528,11 @@ class LoopClosing:
         for d in list(self._deferred):
             self._records[d.record_index] = self._give_up(d, "the stream ended")
         records += self._report(ended)
+        # No keyframe comes after this: the detector's database (most of a long run's memory) goes
+        # before the bundle adjustment needs its own (docs/2026-12-06-long-runs.md).
+        release = getattr(self.detector, "release", None)
+        if callable(release):
+            release()
         self._global_bundle_adjustment()
         return records
 

@@ -11,6 +11,7 @@ the trajectory error before loop closing is known and large. The full ``symbio r
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
@@ -173,6 +174,19 @@ def test_keyframe_images_are_released_once_loop_detection_used_them(
     kept.add(TrackResult(0, 0.0, "tracking", keyframe.pose, 0, keyframe), frame)
     kept.finish()
     assert kept.keyframes[0].image is not None
+
+
+def test_finish_releases_the_loop_detectors_database() -> None:
+    detector = create_symbiolcd2()
+    closing = LoopClosing(GtsamPoseGraph(BackendConfig()), detector, None, None)
+    keyframes = [k for k, _, _ in itertools.islice(drifting_keyframes("loop", 3), 12)]
+    for keyframe in keyframes:
+        result = TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+        closing.add(result)
+    closing.finish()
+    # Every keyframe reached the detector, and its database went before the end-of-run work.
+    assert len(detector.keyframe_ids) == len(keyframes)
+    assert len(detector.kernel) == 0
 
 
 class FalseLoops:

@@ -57,6 +57,18 @@ def test_window_components_and_revisit() -> None:
     assert all(8 - c.match > 3 for c in candidates)
 
 
+def test_release_frees_the_database_and_refuses_more_keyframes() -> None:
+    detector = create([*PAPER_KERNEL, "temporal_window=3"])
+    chair = (DetectedObject("chair", 0.9, (10, 10, 120, 150)),)
+    for index in range(6):
+        detector.add(_keyframe(index, 100 + index, chair))
+    assert len(detector.kernel) == 6
+    detector.release()
+    assert len(detector.kernel) == 0
+    with pytest.raises(RuntimeError, match="after release"):
+        detector.add(_keyframe(6, 101, chair))
+
+
 def test_featureless_keyframes_neither_query_nor_match() -> None:
     detector = create(["temporal_window=0"])
     assert detector.add(_keyframe(0, 1, count=0)) == []
