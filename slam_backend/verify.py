@@ -22,7 +22,9 @@ X maps to s R X + t in the match camera), which is what ``PoseGraphBackend.add_l
 relative, covariance)`` expects (``pose(match)^-1 * pose(query)``). Covariance: 7x7 in
 ``slam_backend.lie``'s Sim(3) order; rotation and translation blocks from the PnP covariance, made
 isotropic (their mean variance per axis, which is invariant to the frame change between the PnP
-pose and ``relative``), log-scale variance from the spread of the per-point distance ratios.
+pose and ``relative``), the translation's no smaller than the two maps' disagreement (the median
+squared 3D residual of the fitting points, per axis), log-scale variance from the spread of the
+per-point distance ratios.
 
 Keyframes without map points (e.g. from the ``replay`` frontend) cannot give a scale: such pairs
 are rejected with that reason. Every random choice takes ``seed``.
@@ -317,9 +319,17 @@ class PycolmapVerifier:
         relative = np.eye(4)
         relative[:3, :3] = scale * match_from_query[:3, :3]
         relative[:3, 3] = match_from_query[:3, 3]
+        # Two maps of a place that disagree in depth (a drifted revisit) give a translation no better
+        # than their disagreement: the median squared 3D residual, per axis (2026-12-07-sim3-reprojection.md).
+        moved = source[good] @ matrix[:, :3].T + matrix[:, 3]
+        disagreement = float(np.median(np.sum((moved - target[good]) ** 2, axis=1))) / 3
         variances = (
             max(np.trace(pose_covariance[:3, :3]) / 3, config.min_rotation_sigma_rad**2),
-            max(np.trace(pose_covariance[3:, 3:]) / 3, (config.min_translation_sigma * depth) ** 2),
+            max(
+                np.trace(pose_covariance[3:, 3:]) / 3,
+                (config.min_translation_sigma * depth) ** 2,
+                disagreement,
+            ),
             max(_log_scale_variance(source[good], target[good]), config.min_log_scale_sigma**2),
         )
         covariance = np.diag(np.repeat(variances, (3, 3, 1)))

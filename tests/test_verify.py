@@ -85,6 +85,10 @@ def test_a_revisit_on_a_noisy_map_is_judged_in_the_images(
     residual = np.linalg.norm(moved - match.points3d[pairs[:, 1]], axis=1)
     depth = np.median(np.linalg.norm(match.points3d[pairs[:, 1]], axis=1))
     assert np.mean(residual <= 0.03 * depth) < 0.8
+    # The constraint says how far the maps disagree: its translation is looser than the exact map's.
+    exact = verifier.verify(query, match)
+    assert exact.covariance is not None and result.covariance is not None
+    assert result.covariance[3, 3] > 1.5 * exact.covariance[3, 3]
 
 
 def test_different_places_are_rejected_with_a_reason(renderer: SceneRenderer, verifier: Verifier) -> None:
