@@ -320,7 +320,8 @@ class PycolmapVerifier:
         relative[:3, :3] = scale * match_from_query[:3, :3]
         relative[:3, 3] = match_from_query[:3, 3]
         # Two maps of a place that disagree in depth (a drifted revisit) give a translation no better
-        # than their disagreement: the median squared 3D residual, per axis (2026-12-07-sim3-reprojection.md).
+        # than their disagreement: the median squared 3D residual, per axis
+        # (docs/2026-12-07-sim3-reprojection.md).
         moved = source[good] @ matrix[:, :3].T + matrix[:, 3]
         disagreement = float(np.median(np.sum((moved - target[good]) ** 2, axis=1))) / 3
         variances = (
