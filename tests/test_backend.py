@@ -95,6 +95,30 @@ def test_single_false_loop_rejected_by_pcm_and_gnc() -> None:
         assert all(decisions[i].accepted for i in true_ids), rejection
 
 
+def test_pcm_gnc_skips_the_gnc_pass_only_while_every_factor_fits() -> None:
+    # True loops: every factor fits iSAM2's estimate, so no GNC pass runs at the estimates between
+    # events, and the answer is the one a pass would give.
+    nodes, steps = square_loop(drift=1.0)
+    skipping = build(BackendConfig(), steps)
+    passing = build(BackendConfig(gnc_skip_when_consistent=False), steps)
+    for k in (2, 4, 6):
+        for graph in (skipping, passing):
+            graph.add_loop(k, k + 30, loop_between(nodes, k, k + 30), LOOP_COV)
+            graph.estimate()
+    assert all(d.reason.startswith("pcm") for d in skipping.decisions().values())
+    assert all(d.reason.startswith("gnc") for d in passing.decisions().values())
+    np.testing.assert_allclose(positions(skipping), positions(passing), atol=1e-3)
+    # A lone false loop: PCM has nothing to test it against and accepts it; it bends the odometry
+    # beyond its covariance, so the pass runs and rejects it.
+    nodes, steps = square_loop(drift=1.0)
+    graph = build(BackendConfig(), steps)
+    false = graph.add_loop(9, 20, sim3(0.3, (1.0, 0.5, 0.0)), LOOP_COV)
+    assert false.accepted and false.reason.startswith("pcm")
+    graph.estimate()
+    assert not graph.decisions()[false.loop_id].accepted
+    assert graph.decisions()[false.loop_id].reason.startswith("gnc")
+
+
 def test_save_load_round_trip(tmp_path: Path) -> None:
     nodes, steps = square_loop(count=20)
     graph = build(BackendConfig(rejection="pcm"), steps)
