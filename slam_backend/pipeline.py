@@ -804,11 +804,13 @@ class LoopClosing:
         return replace(keyframe, objects=(*objects, *self._walking_missed(keyframe, objects)))
 
     def _walking_missed(self, keyframe: Keyframe, own: tuple[DetectedObject, ...]) -> list[DetectedObject]:
-        """People and animals the keyframes of ``keyframe``'s segment up to ``walking_memory_s`` away
-        saw where ``keyframe``'s own detections (``own``) have none. A detector misses some views of
-        a person, and a person who walked through both views of a loop joins them wrongly
-        (docs/2026-12-06-walking-people.md); one in view a moment before and after is likely in view
-        between. A person the keyframe saw itself is where its own box says."""
+        """People and animals the keyframes up to ``walking_memory_s`` away saw where ``keyframe``'s
+        own detections (``own``) have none. A detector misses some views of a person, and a person
+        who walked through both views of a loop joins them wrongly (docs/2026-12-06-walking-people.md);
+        one in view a moment before and after is likely in view between. Keyframes of another map
+        segment count too: the first keyframe of a new segment has no neighbour of its own before it,
+        and a wrong join there was a person the previous segment's last keyframe saw
+        (docs/2026-12-07-backend-cost.md). A person the keyframe saw itself is where its own box says."""
         window = self.config.walking_memory_s
         if window <= 0:
             return []
@@ -819,11 +821,9 @@ class LoopClosing:
         unsettled = {k.id: k for k in self._unsettled}
         for step in (-1, 1):
             kf_id = keyframe.id + step
-            while (
-                (other := self._keyframes.get(kf_id) or unsettled.get(kf_id)) is not None
-                and other.segment == keyframe.segment
-                and abs(other.timestamp - keyframe.timestamp) <= window
-            ):
+            while (other := self._keyframes.get(kf_id) or unsettled.get(kf_id)) is not None and abs(
+                other.timestamp - keyframe.timestamp
+            ) <= window:
                 seen = objects.get(other.id, self._detections.get(other.frame_index, ()))
                 found += [o for o in seen if o.label in labels and all(iou(o.box, b) == 0 for b in seen_here)]
                 kf_id += step

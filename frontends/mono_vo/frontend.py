@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeConfig, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
-from frontends.mono_vo.geometry import frame_seed, invert, linear_map, transform
+from frontends.mono_vo.geometry import frame_seed, invert, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -509,18 +509,23 @@ class MonoVo:
         points = self.segment_map.points
         known = np.array(sorted(corrections))
         newest = self.segment_map.keyframes[-1].id
-        # Points created by keyframes without a correction move with the newest corrected one.
-        reference = np.where(np.isin(points.first_keyframe, known), points.first_keyframe, known[-1])
-        for kf_id in np.unique(reference):
-            S = corrections[int(kf_id)]
-            scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-            chosen = reference == kf_id
-            points.positions[chosen] = transform(S, points.positions[chosen])
-            # What the projection checks know of a point moves with it: the mean viewing direction
-            # turns with the rotation, the distance range over which its descriptor holds scales.
-            points.normals[chosen] = linear_map(S[:3, :3] / scale, points.normals[chosen])
-            points.min_distance[chosen] *= scale
-            points.max_distance[chosen] *= scale
+        # Each point moves with the keyframe that created it; points of keyframes without a
+        # correction move with the newest corrected one. One gather per point, not a pass over all
+        # points per keyframe (that cost 0.1 s per loop event on a 9000-frame run).
+        stacked = np.stack([corrections[int(k)] for k in known])
+        scales = np.cbrt(np.linalg.det(stacked[:, :3, :3]))
+        slot = np.searchsorted(known, points.first_keyframe)
+        slot[(slot >= len(known)) | (known[np.minimum(slot, len(known) - 1)] != points.first_keyframe)] = (
+            len(known) - 1
+        )
+        rotations = stacked[slot, :3, :3]
+        points.positions[:] = np.einsum("pij,pj->pi", rotations, points.positions) + stacked[slot, :3, 3]
+        # What the projection checks know of a point moves with it: the mean viewing direction
+        # turns with the rotation, the distance range over which its descriptor holds scales.
+        scale = scales[slot]
+        points.normals[:] = np.einsum("pij,pj->pi", rotations, points.normals) / scale[:, None]
+        points.min_distance *= scale
+        points.max_distance *= scale
         last = corrections.get(newest, corrections[int(known[-1])])
         if self.T_cw_last is not None:
             self.T_cw_last = invert(_without_scale(last @ invert(self.T_cw_last)))
