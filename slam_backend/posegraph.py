@@ -21,7 +21,8 @@
     With the default ``gnc_interval = 0`` this is the batch-GNC baseline.
   - ``pcm+gnc`` (default): PCM decides at each event (fast); a GNC pass over the PCM-accepted
     loops re-checks them only when required: when ``estimate()`` is asked after the accepted set
-    changed (and after every ``gnc_interval`` changes of the set when ``gnc_interval > 0``).
+    changed (and after every ``gnc_interval`` changes of the set when ``gnc_interval > 0``), and
+    then only if some factor does not fit iSAM2's estimate (``gnc_skip_when_consistent``).
 
   After a GNC pass a fresh iSAM2 is seeded with the GNC solution (iSAM2 cannot be re-seeded in
   place, and the batch solution is the better linearisation point).
