@@ -390,6 +390,9 @@ def test_loop_closing_adjusts_only_the_segments_its_loops_reach() -> None:
     graph = both.backend.estimate()
     for kf_id in range(KEYFRAMES, KEYFRAMES + 10):
         np.testing.assert_allclose(both.adjusted.poses[kf_id], graph[kf_id], atol=1e-9)
+    # Segment 0's pose-graph estimate, where the BA starts, can be iSAM2's in one run and a GNC
+    # pass's batch solution in the other: whether a due pass runs depends on every factor, the other
+    # segment's too (docs/2026-12-07-backend-cost.md). The two agree within 1e-5, not to the bit.
     for kf_id in range(KEYFRAMES):
-        np.testing.assert_allclose(both.adjusted.poses[kf_id], alone.adjusted.poses[kf_id], atol=1e-6)
+        np.testing.assert_allclose(both.adjusted.poses[kf_id], alone.adjusted.poses[kf_id], atol=2e-5)
     assert _aligned_error(both.adjusted.poses, poses) < 0.5 * _aligned_error(estimates, poses)
