@@ -514,10 +514,8 @@ class MonoVo:
         # points per keyframe (0.56 s at 100 000 points, 850 keyframes: docs/2026-12-07-backend-cost.md).
         stacked = np.stack([corrections[int(k)] for k in known])
         scales = np.cbrt(np.linalg.det(stacked[:, :3, :3]))
-        slot = np.searchsorted(known, points.first_keyframe)
-        slot[(slot >= len(known)) | (known[np.minimum(slot, len(known) - 1)] != points.first_keyframe)] = (
-            len(known) - 1
-        )
+        slot = np.minimum(np.searchsorted(known, points.first_keyframe), len(known) - 1)
+        slot[known[slot] != points.first_keyframe] = len(known) - 1
         rotations = stacked[slot, :3, :3]
         points.positions[:] = np.einsum("pij,pj->pi", rotations, points.positions) + stacked[slot, :3, 3]
         # What the projection checks know of a point moves with it: the mean viewing direction
