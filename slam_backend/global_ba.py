@@ -305,12 +305,13 @@ def _solve(
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.iterations)
     params.setRelativeErrorTol(config.relative_error_tolerance)
-    ordering = gtsam.Ordering()
-    for index in used.tolist():  # points first: the Schur complement
-        ordering.push_back(index)
-    for kf_id in poses:
-        ordering.push_back(gtsam.symbol("x", kf_id))
-    params.setOrdering(ordering)
+    # METIS over the whole graph rather than points first, then keyframes by id: on a long map the
+    # keyframes' order sets the fill-in. 9000-frame figure 8 (625 keyframes, 209k observations):
+    # +1.07 GB at the peak against +2.13 GB, the same poses (docs/2026-12-07-global-ba-memory.md).
+    params.setOrderingType("METIS")
+    # Nielsen's damping update: after a success, GTSAM's fixed factor cuts lambda tenfold and the
+    # next step mostly fails, so every other linear solve was wasted.
+    params.setUseFixedLambdaFactor(False)
     # Damping scaled by the Hessian's diagonal (Marquardt's): with GTSAM's default, identity-scaled
     # damping the first step on a many-keyframe map can put points behind cameras (infinite cost)
     # however large lambda grows (measured on a 110-keyframe synthetic map: no step accepted).
