@@ -29,7 +29,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -91,12 +91,14 @@ class SlamState:
         return [r for r in self.results if r.pose is not None]
 
     def add(self, result: TrackResult) -> None:
+        """Keep ``result`` without its point observations: loop closing keeps its own compact copy
+        for re-posing, and these were ~14 kB per frame for the whole run (130 MB at 9000 frames)."""
         self.positions[result.frame_index] = len(self.results)
-        self.results.append(result)
+        self.results.append(replace(result, observations=None, backfilled=()))
         for late in result.backfilled:
             position = self.positions.get(late.frame_index)
             if position is not None:
-                self.results[position] = late
+                self.results[position] = replace(late, observations=None)
 
 
 @dataclass

@@ -114,3 +114,21 @@ def test_the_readme_python_quick_start_runs(small_loop_scene: Path, tmp_path: Pa
     result = namespace["result"]
     assert isinstance(result, SlamResult) and result.figures["frames_tracked"] >= 590
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(RESULT_FILES)
+
+
+def test_the_run_state_keeps_no_point_observations() -> None:
+    """``SlamState`` keeps every frame's result for the whole run without the point observations
+    (loop closing keeps its own compact copy for re-posing): ~14 kB per frame otherwise. A result
+    posed late replaces the earlier one, also without them."""
+    from frontends.base import PointObservations, TrackResult
+    from slam_backend.slam import SlamState
+
+    observations = PointObservations(np.zeros((500, 2)), np.arange(500))
+    state = SlamState()
+    state.add(TrackResult(0, 0.0, "initialising", None))
+    late = TrackResult(0, 0.0, "tracking", np.eye(4), observations=observations)
+    state.add(TrackResult(1, 0.1, "tracking", np.eye(4), observations=observations, backfilled=(late,)))
+    assert [r.frame_index for r in state.results] == [0, 1]
+    assert [r.state for r in state.results] == ["tracking", "tracking"]
+    assert all(r.observations is None and r.backfilled == () for r in state.results)
+    assert all(r.pose is not None for r in state.results)
