@@ -105,7 +105,8 @@ class SlamState:
 class SlamResult:
     """A finished (or interrupted) run, in memory."""
 
-    #: One result per frame processed (state, odometry pose, keyframe, segment), in stream order.
+    #: One result per frame processed (state, odometry pose, keyframe, segment), in stream order;
+    #: without ``observations`` (kept only while the run needs them; ``Slam.track`` returns them).
     frames: list[TrackResult]
     #: Loop-corrected poses of the posed frames, in frame order.
     trajectory: list[PosedFrame]
