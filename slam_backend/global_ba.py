@@ -307,7 +307,8 @@ def _solve(
     params.setRelativeErrorTol(config.relative_error_tolerance)
     # METIS over the whole graph rather than points first, then keyframes by id: on a long map the
     # keyframes' order sets the fill-in. 9000-frame figure 8 (625 keyframes, 209k observations):
-    # +1.07 GB at the peak against +2.13 GB, the same poses (docs/2026-12-07-global-ba-memory.md).
+    # +1.07 GB at the peak against +2.13 GB; but 9000-frame loop (7 segments): +460 against +150 MB
+    # (docs/2026-12-07-global-ba-memory.md; choosing per graph is open).
     params.setOrderingType("METIS")
     # Nielsen's damping update: after a success, GTSAM's fixed factor cuts lambda tenfold and the
     # next step mostly fails, so every other linear solve was wasted.
