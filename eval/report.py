@@ -18,15 +18,10 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from evo.core import metrics
 from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
-from evo.tools import plot as evo_plot
 
 from eval.outputs import RunFolder
 from frontends.datasets import Dataset
@@ -38,7 +33,20 @@ APE_FILE = "ape_over_time.png"
 REPORT_FILE = "report.html"
 
 Poses = Sequence[tuple[int, float, np.ndarray]]
-_MODES = {(0, 1): evo_plot.PlotMode.xy, (0, 2): evo_plot.PlotMode.xz, (1, 2): evo_plot.PlotMode.yz}
+_MODES = {(0, 1): "xy", (0, 2): "xz", (1, 2): "yz"}
+
+
+def _pyplot() -> tuple[Any, Any]:
+    """matplotlib's pyplot (Agg) and evo's plot module, imported when a plot is drawn: with
+    seaborn and pandas they hold about 130 MB, which a run would otherwise carry from its start
+    through its memory peak (the global bundle adjustment)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from evo.tools import plot as evo_plot
+
+    return plt, evo_plot
 
 
 def _trajectory(poses: Poses) -> PoseTrajectory3D:
@@ -80,7 +88,7 @@ def _save(figure: Any, folder: RunFolder, name: str) -> None:
     """Render ``figure`` as PNG in memory, then write it atomically (never through a symlink)."""
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
-    plt.close(figure)
+    _pyplot()[0].close(figure)
     folder.write_bytes(name, buffer.getvalue())
 
 
@@ -103,7 +111,8 @@ def write_plots(
     before, after = _shown(odometry_kept, gt), _shown(final_kept, gt)
     reference = gt.positions_xyz if gt is not None else after.positions_xyz
     axes = tuple(int(a) for a in np.sort(np.argsort(np.ptp(reference, axis=0))[-2:]))
-    mode = _MODES[(axes[0], axes[1])]
+    plt, evo_plot = _pyplot()
+    mode = getattr(evo_plot.PlotMode, _MODES[(axes[0], axes[1])])
     figure = plt.figure(figsize=(8, 8))
     ax = evo_plot.prepare_axis(figure, mode)
     if gt is not None:

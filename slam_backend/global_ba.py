@@ -305,11 +305,9 @@ def _solve(
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.iterations)
     params.setRelativeErrorTol(config.relative_error_tolerance)
-    # METIS over the whole graph rather than points first, then keyframes by id: on a long map the
-    # keyframes' order sets the fill-in. 9000-frame figure 8 (625 keyframes, 209k observations):
-    # +1.07 GB at the peak against +2.13 GB; but 9000-frame loop (7 segments): +460 against +150 MB
-    # (docs/2026-12-07-global-ba-memory.md; choosing per graph is open).
-    params.setOrderingType("METIS")
+    # The ordering sets the elimination's memory, and neither METIS nor COLAMD suits every map
+    # (docs/2026-12-07-global-ba-memory.md): take the one whose largest clique gathers least.
+    params.setOrdering(_least_gathering_ordering(keyframe_ids, point_index, poses))
     # Nielsen's damping update: after a success, GTSAM's fixed factor cuts lambda tenfold and the
     # next step mostly fails, so every other linear solve was wasted.
     params.setUseFixedLambdaFactor(False)
@@ -329,6 +327,55 @@ def _solve(
     for index in used.tolist():
         adjusted[index] = result.atPoint3(index)
     return {k: result.atPose3(gtsam.symbol("x", k)).matrix() for k in poses}, adjusted
+
+
+def _least_gathering_ordering(
+    keyframe_ids: np.ndarray, point_index: np.ndarray, poses: Mapping[int, np.ndarray]
+) -> gtsam.Ordering:
+    """METIS's or COLAMD's elimination ordering of the projection factors (keyframe ``x`` keys,
+    point indices as keys), whichever has the smaller ``_largest_gather``. The peak memory of
+    GTSAM's multifrontal elimination followed that measure on both long maps measured, at about
+    250 MB above it; the two orderings each lost by 0.4-0.9 GB on one of them."""
+    symbolic = gtsam.SymbolicFactorGraph()
+    pairs = np.unique(np.stack([keyframe_ids, point_index]), axis=1)
+    for kf_id, point in pairs.T.tolist():
+        symbolic.push_factor(gtsam.symbol("x", kf_id), point)
+    for kf_id in poses:  # the gauge priors
+        symbolic.push_factor(gtsam.symbol("x", kf_id))
+    candidates = [
+        gtsam.Ordering.MetisSymbolicFactorGraph(symbolic),
+        gtsam.Ordering.ColamdSymbolicFactorGraph(symbolic),
+    ]
+    gathers = [_largest_gather(symbolic, ordering) for ordering in candidates]
+    log.debug("global BA ordering: largest gather METIS %.0f MB, COLAMD %.0f MB", *(g / 1e6 for g in gathers))
+    return candidates[int(np.argmin(gathers))]
+
+
+def _largest_gather(symbolic: gtsam.SymbolicFactorGraph, ordering: gtsam.Ordering) -> float:
+    """Bytes of the largest set of dense blocks that eliminating one clique of ``ordering`` holds
+    at once: its own (frontal + separator dimensions)^2 block and its children's separator^2
+    update blocks (doubles; keyframe ``x`` keys 6 dimensions, other keys 3)."""
+
+    def dim(key: int) -> int:
+        return 6 if gtsam.Symbol(key).chr() == ord("x") else 3
+
+    tree = symbolic.eliminateMultifrontal(ordering)
+    own: dict[int, float] = {}
+    gathered: dict[int, float] = {}
+    for i in range(ordering.size()):
+        clique = tree[ordering.at(i)]
+        conditional = clique.conditional()
+        first = conditional.firstFrontalKey()
+        if first in own:
+            continue
+        keys = list(conditional.keys())
+        separator = sum(dim(k) for k in keys[conditional.nrFrontals() :])
+        own[first] = 8.0 * (sum(dim(k) for k in keys)) ** 2
+        parent = clique.parent()
+        if parent is not None:
+            up = parent.conditional().firstFrontalKey()
+            gathered[up] = gathered.get(up, 0.0) + 8.0 * separator**2
+    return max(size + gathered.get(first, 0.0) for first, size in own.items())
 
 
 def _fused_observations(
