@@ -82,6 +82,8 @@ class GlobalBundleAdjustmentConfig:
     max_observations: int = 100_000
     #: Map-point observations kept per frame to re-pose it (evenly spaced; 200 cost loop 2 18 % ATE); 0: all.
     frame_max_observations: int = 0
+    #: Bound (MB) of the elimination's largest clique (symbolic estimate; peak RSS ~250 MB above); 0: none.
+    max_gather_mb: float = 512.0
 
     def __post_init__(self) -> None:
         if self.pixel_sigma <= 0 or self.huber_k <= 0:
@@ -94,6 +96,8 @@ class GlobalBundleAdjustmentConfig:
             raise ConfigError("global_ba: max_observations and frame_max_observations must be >= 0 (0: all)")
         if not 0 <= self.weak_keyframe_share < 1:
             raise ConfigError("global_ba: weak_keyframe_share must be in [0, 1)")
+        if self.max_gather_mb < 0:
+            raise ConfigError("global_ba: max_gather_mb must be >= 0 (0: no bound)")
 
 
 @dataclass(frozen=True)
@@ -276,6 +280,7 @@ def _solve(
 ) -> tuple[dict[int, np.ndarray], np.ndarray] | None:
     """Levenberg-Marquardt from ``poses`` (SE(3)) and point ``positions``; None when it failed or
     found nothing better."""
+    observed, ordering = _ordered_within_budget(observed, poses, config)
     keyframe_ids, point_index, sigmas = observed.keyframe_ids, observed.point_index, observed.sigma
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -305,9 +310,7 @@ def _solve(
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.iterations)
     params.setRelativeErrorTol(config.relative_error_tolerance)
-    # The ordering sets the elimination's memory, and neither METIS nor COLAMD suits every map
-    # (docs/2026-12-07-global-ba-memory.md): take the one whose largest clique gathers least.
-    params.setOrdering(_least_gathering_ordering(keyframe_ids, point_index, poses))
+    params.setOrdering(ordering)
     # Nielsen's damping update: after a success, GTSAM's fixed factor cuts lambda tenfold and the
     # next step mostly fails, so every other linear solve was wasted.
     params.setUseFixedLambdaFactor(False)
@@ -329,15 +332,79 @@ def _solve(
     return {k: result.atPose3(gtsam.symbol("x", k)).matrix() for k in poses}, adjusted
 
 
+def _ordered_within_budget(
+    observed: _Observations, poses: Mapping[int, np.ndarray], config: GlobalBundleAdjustmentConfig
+) -> tuple[_Observations, gtsam.Ordering]:
+    """The elimination ordering, and the observations to solve with: all of them, unless even the
+    best ordering's largest clique gathers more than ``max_gather_mb``. Then the longest point
+    tracks are thinned (``_capped_tracks``) until it fits. A point seen by k keyframes leaves a
+    (6k)^2 block that its keyframes' clique holds with those of its other points, so the long
+    tracks of a map revisited many times set the peak (docs/2026-12-07-global-ba-memory.md)."""
+    budget = config.max_gather_mb * 1e6
+    lengths = np.bincount(observed.point_index)
+    kept, cap = observed, int(lengths.max(initial=0))
+    ordering, gather = _least_gathering_ordering(kept.keyframe_ids, kept.point_index, poses)
+    for _ in range(_BUDGET_ROUNDS):
+        if budget <= 0 or gather <= budget or cap <= 2:
+            break
+        cap = _cap_for(lengths, cap, budget / gather)
+        kept = observed.subset(_capped_tracks(observed.point_index, observed.keyframe_ids, cap))
+        log.info(
+            "global BA: largest clique %.0f MB > max_gather_mb %.0f; tracks capped at %d observations "
+            "(%d of %d kept)", gather / 1e6, config.max_gather_mb, cap, len(kept.point_index),
+            len(observed.point_index),
+        )  # fmt: skip
+        ordering, gather = _least_gathering_ordering(kept.keyframe_ids, kept.point_index, poses)
+    return kept, ordering
+
+
+#: Rounds of track thinning at most (each one ~1-3 s of symbolic work on a 200k-observation map).
+_BUDGET_ROUNDS = 5
+
+
+def _cap_for(lengths: np.ndarray, cap: int, ratio: float) -> int:
+    """The largest cap below ``cap`` that shrinks sum(min(k, cap)^2) over the track lengths k by
+    ``ratio`` (at least 2): the gathered blocks grow with the square of the tracks they come from,
+    and which tracks a clique gathers is not known before the ordering, so all of them count."""
+    caps = np.arange(2, max(cap, 3))
+    squares = np.minimum(lengths[None, :], caps[:, None]).astype(np.float64) ** 2
+    volumes = squares.sum(axis=1)
+    want = ratio * float((np.minimum(lengths, cap).astype(np.float64) ** 2).sum())
+    fitting = np.flatnonzero(volumes <= want)
+    return int(caps[fitting[-1]]) if len(fitting) else 2
+
+
+def _capped_tracks(point_index: np.ndarray, keyframe_ids: np.ndarray, cap: int) -> np.ndarray:
+    """Mask keeping at most ``cap`` observations of each point, evenly spaced over its observers in
+    keyframe order, the first and the last kept: every pass over the place still ties in."""
+    order = np.lexsort((keyframe_ids, point_index))
+    points = point_index[order]
+    starts = np.flatnonzero(np.r_[True, points[1:] != points[:-1]])
+    counts = np.diff(np.r_[starts, len(points)])
+    n = np.repeat(counts, counts).astype(np.float64)
+    rank = np.arange(len(points)) - np.repeat(starts, counts)
+    # Rank r is kept when r = round(j (n - 1) / (cap - 1)) for some j in 0..cap-1: the two j
+    # nearest to r (cap - 1) / (n - 1) are the only ones that can give it.
+    spacing = (n - 1) / (cap - 1)
+    below = np.floor(rank / np.maximum(spacing, 1e-12) + 1e-9)
+    hit = (np.round(below * spacing) == rank) | (np.round((below + 1) * spacing) == rank)
+    keep = np.zeros(len(points), dtype=bool)
+    keep[order[(counts.repeat(counts) <= cap) | hit]] = True
+    return keep
+
+
 def _least_gathering_ordering(
     keyframe_ids: np.ndarray, point_index: np.ndarray, poses: Mapping[int, np.ndarray]
-) -> gtsam.Ordering:
-    """METIS's or COLAMD's elimination ordering of the projection factors (keyframe ``x`` keys,
-    point indices as keys), whichever has the smaller ``_largest_gather``. The peak memory of
-    GTSAM's multifrontal elimination followed that measure on both long maps measured, at about
-    250 MB above it; the two orderings each lost by 0.4-0.9 GB on one of them."""
-    symbolic = gtsam.SymbolicFactorGraph()
+) -> tuple[gtsam.Ordering, float]:
+    """METIS's or COLAMD's ordering of the observations' symbolic graph (one factor per
+    keyframe-point pair, in keyframe order, plus the gauge priors), whichever has the smaller
+    ``_largest_gather``, and that gather (bytes). The peak memory of GTSAM's multifrontal
+    elimination followed the largest gather at ~250 MB above it on both long maps measured, and
+    each of the two orderings lost by 0.4-0.9 GB on one of them. METIS's result also depends on
+    the factors' order (621-1087 MB over seven orders of one figure-8 map); trying more orders
+    cost 1.4 s each there and did not beat this one (docs/2026-12-07-global-ba-memory.md)."""
     pairs = np.unique(np.stack([keyframe_ids, point_index]), axis=1)
+    symbolic = gtsam.SymbolicFactorGraph()
     for kf_id, point in pairs.T.tolist():
         symbolic.push_factor(gtsam.symbol("x", kf_id), point)
     for kf_id in poses:  # the gauge priors
@@ -347,18 +414,16 @@ def _least_gathering_ordering(
         gtsam.Ordering.ColamdSymbolicFactorGraph(symbolic),
     ]
     gathers = [_largest_gather(symbolic, ordering) for ordering in candidates]
+    best = int(np.argmin(gathers))
     log.debug("global BA ordering: largest gather METIS %.0f MB, COLAMD %.0f MB", *(g / 1e6 for g in gathers))
-    return candidates[int(np.argmin(gathers))]
+    return candidates[best], gathers[best]
 
 
 def _largest_gather(symbolic: gtsam.SymbolicFactorGraph, ordering: gtsam.Ordering) -> float:
     """Bytes of the largest set of dense blocks that eliminating one clique of ``ordering`` holds
     at once: its own (frontal + separator dimensions)^2 block and its children's separator^2
-    update blocks (doubles; keyframe ``x`` keys 6 dimensions, other keys 3)."""
-
-    def dim(key: int) -> int:
-        return 6 if gtsam.Symbol(key).chr() == ord("x") else 3
-
+    update blocks (doubles; keyframe ``x`` keys 6 dimensions, point keys 3)."""
+    first_pose_key = gtsam.symbol("x", 0)  # "x" keys lie above every point index
     tree = symbolic.eliminateMultifrontal(ordering)
     own: dict[int, float] = {}
     gathered: dict[int, float] = {}
@@ -368,12 +433,12 @@ def _largest_gather(symbolic: gtsam.SymbolicFactorGraph, ordering: gtsam.Orderin
         first = conditional.firstFrontalKey()
         if first in own:
             continue
-        keys = list(conditional.keys())
-        separator = sum(dim(k) for k in keys[conditional.nrFrontals() :])
-        own[first] = 8.0 * (sum(dim(k) for k in keys)) ** 2
+        dims = np.where(np.asarray(conditional.keys(), dtype=np.uint64) >= first_pose_key, 6, 3)
+        own[first] = 8.0 * float(dims.sum()) ** 2
         parent = clique.parent()
         if parent is not None:
             up = parent.conditional().firstFrontalKey()
+            separator = float(dims[conditional.nrFrontals() :].sum())
             gathered[up] = gathered.get(up, 0.0) + 8.0 * separator**2
     return max(size + gathered.get(first, 0.0) for first, size in own.items())
 

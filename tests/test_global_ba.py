@@ -239,6 +239,7 @@ def test_repose_frame_from_adjusted_points() -> None:
         ("frame_max_observations", -1),
         ("weak_keyframe_share", 1.0),
         ("weak_keyframe_share", -0.1),
+        ("max_gather_mb", -1.0),
     ],
 )
 def test_bad_settings_are_config_errors(field: str, value: float) -> None:
@@ -444,8 +445,9 @@ def test_the_ordering_is_the_one_that_gathers_least(tracks, better):
     }
     assert min(gathers, key=gathers.get) == better
     assert max(gathers.values()) > 1.2 * min(gathers.values())
-    chosen = _least_gathering_ordering(keyframe_ids, point_index, poses)
+    chosen, gather = _least_gathering_ordering(keyframe_ids, point_index, poses)
     assert chosen.size() == len(poses) + len(np.unique(point_index))
+    assert gather == pytest.approx(_largest_gather(graph, chosen))
     # Not bit-identical to ``gathers[better]``: METIS's result depends on the factors' order.
     assert _largest_gather(graph, chosen) < 1.05 * gathers[better] < max(gathers.values())
 
@@ -459,3 +461,37 @@ def test_the_largest_gather_of_one_observation_is_its_dense_block():
     graph = gtsam.SymbolicFactorGraph()
     graph.push_factor(gtsam.symbol("x", 0), 0)
     assert _largest_gather(graph, gtsam.Ordering.ColamdSymbolicFactorGraph(graph)) == 8 * 9 * 9
+
+
+def test_capped_tracks_keep_evenly_spaced_observers_with_both_ends():
+    from slam_backend.global_ba import _capped_tracks
+
+    rng = np.random.default_rng(1)
+    point_index = rng.integers(0, 200, 5000)
+    keyframe_ids = rng.permutation(5000)  # one observation per keyframe id: the order is the id
+    keep = _capped_tracks(point_index, keyframe_ids, 7)
+    for point in range(200):
+        mine = np.flatnonzero(point_index == point)
+        kept = np.sort(keyframe_ids[mine[keep[mine]]])
+        everyone = np.sort(keyframe_ids[mine])
+        assert len(kept) == min(len(mine), 7)
+        assert kept[0] == everyone[0] and kept[-1] == everyone[-1]
+        if len(mine) > 7:  # evenly spaced: the gaps in rank differ by one at most
+            ranks = np.searchsorted(everyone, kept)
+            assert np.ptp(np.diff(ranks)) <= 1
+
+
+def test_a_memory_bound_thins_the_longest_tracks_and_still_closes_the_loop(caplog):
+    """A bound of 2 MB, under this map's largest clique (5 MB), caps the tracks at 5 observations
+    (94 % of them kept); the loop still closes (0.0054 m against 0.0053 m unbounded, from 0.070 m).
+    A bound that caps them at 2 would leave each point tying two keyframes and lose the loop."""
+    poses, keyframes, loops, estimates, _ = _loop_scene()
+    before = _aligned_error(estimates, poses)
+    with caplog.at_level("INFO", logger="slam_backend.global_ba"):
+        bounded = global_bundle_adjustment(
+            keyframes, estimates, loops, CAMERA, GlobalBundleAdjustmentConfig(max_gather_mb=2.0)
+        )
+    assert bounded is not None
+    capped = [r.getMessage() for r in caplog.records if "tracks capped" in r.getMessage()]
+    assert capped, "the bound never applied"
+    assert _aligned_error(bounded.poses, poses) < 0.15 * before
