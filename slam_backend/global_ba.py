@@ -367,9 +367,11 @@ def _cap_for(lengths: np.ndarray, cap: int, ratio: float) -> int:
     ``ratio`` (at least 2): the gathered blocks grow with the square of the tracks they come from,
     and which tracks a clique gathers is not known before the ordering, so all of them count."""
     caps = np.arange(2, max(cap, 3))
-    squares = np.minimum(lengths[None, :], caps[:, None]).astype(np.float64) ** 2
-    volumes = squares.sum(axis=1)
-    want = ratio * float((np.minimum(lengths, cap).astype(np.float64) ** 2).sum())
+    k = np.sort(lengths).astype(np.float64)
+    shorter = np.searchsorted(k, caps)  # tracks shorter than each cap keep their length
+    below = np.r_[0.0, np.cumsum(k**2)]
+    volumes = below[shorter] + caps.astype(np.float64) ** 2 * (len(k) - shorter)
+    want = ratio * float((np.minimum(k, cap) ** 2).sum())
     fitting = np.flatnonzero(volumes <= want)
     return int(caps[fitting[-1]]) if len(fitting) else 2
 
