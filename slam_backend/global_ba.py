@@ -383,15 +383,15 @@ def _capped_tracks(point_index: np.ndarray, keyframe_ids: np.ndarray, cap: int) 
     points = point_index[order]
     starts = np.flatnonzero(np.r_[True, points[1:] != points[:-1]])
     counts = np.diff(np.r_[starts, len(points)])
-    n = np.repeat(counts, counts).astype(np.float64)
+    n = np.repeat(counts, counts)
     rank = np.arange(len(points)) - np.repeat(starts, counts)
     # Rank r is kept when r = round(j (n - 1) / (cap - 1)) for some j in 0..cap-1: the two j
     # nearest to r (cap - 1) / (n - 1) are the only ones that can give it.
-    spacing = (n - 1) / (cap - 1)
+    spacing = (n - 1.0) / (cap - 1)
     below = np.floor(rank / np.maximum(spacing, 1e-12) + 1e-9)
     hit = (np.round(below * spacing) == rank) | (np.round((below + 1) * spacing) == rank)
     keep = np.zeros(len(points), dtype=bool)
-    keep[order[(counts.repeat(counts) <= cap) | hit]] = True
+    keep[order[(n <= cap) | hit]] = True
     return keep
 
 
