@@ -985,3 +985,72 @@ def test_a_slow_camera_initialises() -> None:
     assert len(backfilled) >= cap // 2
     assert backfilled[0] == reference and backfilled[-1] >= first - 2
     assert frontend.pending == []
+
+
+@pytest.mark.parametrize(("reach", "expected"), [(64, [13, 12]), (8, [])])
+def test_a_slow_camera_triangulates_with_older_keyframes_beyond_the_window(
+    reach: int, expected: list[int]
+) -> None:
+    """Keyframes 2 mm apart (a camera at 3 cm/s that makes a keyframe every other frame): the 8 of
+    the window lie within 1.6 cm, under the 3.5 % of the 1.4 m depth a partner needs, and no new
+    point was made until tracking starved (the 9000-frame out-and-back lost its map ten times;
+    docs/2026-12-07-slow-camera.md). The newest older keyframes with the baseline that still see
+    the scene are the partners; keyframe 14 sees another scene and is passed over."""
+    camera = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    frontend = create(camera, [f"keyframes.triangulation_reach={reach}"])
+    rng = np.random.default_rng(0)
+    points_w = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-0.7, 0.7, 200), np.full(200, 1.4)])
+    segment_map = frontend.segment_map
+    ids = segment_map.points.add(points_w, 0)
+    features = Features(
+        np.zeros((200, 2), np.float32), np.zeros((200, 2)), np.zeros((200, 32), np.uint8),
+        np.zeros(200, int), np.zeros(200),
+    )  # fmt: skip
+    for k in range(40):
+        T_cw = np.eye(4)
+        T_cw[0, 3] = -0.002 * k  # the camera centre at x = 2 mm x k
+        keyframe = KeyframeState(k, 2 * k, k / 15, T_cw, features, np.full(200, -1), None)  # type: ignore[arg-type]
+        segment_map.keyframes.append(keyframe)
+        if k != 14:
+            segment_map.observe(keyframe, np.arange(200), ids)
+    newest = segment_map.keyframes[-1]
+    estimate = PoseEstimate(newest.T_cw, np.arange(200), ids)
+    assert [kf.id for kf in frontend._triangulation_neighbours(newest, estimate)] == expected
+
+
+@pytest.mark.parametrize(("covisible", "hidden_in_local_map"), [(10, True), (0, False)])
+def test_points_hidden_for_more_keyframes_than_the_window_stay_in_the_local_map(
+    covisible: int, hidden_in_local_map: bool
+) -> None:
+    """Something close hides half the view for 20 keyframes (a person walking past a slow camera
+    makes one every frame or two): the last 10 keyframes no longer hold the hidden half's points,
+    and when it reappeared tracking had nothing to match it to (the 9000-frame out-and-back, frame
+    2107). The older keyframes that share the visible half with the newest one (ORB-SLAM's
+    covisible keyframes) bring the hidden points back into the local map; points they hold out of
+    the newest keyframe's view (here behind it) stay out."""
+    camera = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    frontend = create(camera, [f"tracking.covisible_keyframes={covisible}"])
+    segment_map = frontend.segment_map
+    rng = np.random.default_rng(0)
+    positions = np.column_stack([rng.uniform(-1, 1, 300), rng.uniform(-0.7, 0.7, 300), np.full(300, 2.0)])
+    positions[200:, 2] = -2.0
+    ids = segment_map.points.add(positions, 0)
+    visible, hidden, behind = ids[:100], ids[100:200], ids[200:]
+    features = Features(
+        np.zeros((300, 2), np.float32), np.zeros((300, 2)), np.zeros((300, 32), np.uint8),
+        np.zeros(300, int), np.zeros(300),
+    )  # fmt: skip
+    settings = frontend.config.tracking
+    for k in range(30):
+        keyframe = KeyframeState(k, k, k / 30, np.eye(4), features, np.full(300, -1), None)  # type: ignore[arg-type]
+        segment_map.keyframes.append(keyframe)
+        seen = ids if k < 10 else visible
+        segment_map.observe(keyframe, np.arange(len(seen)), seen)
+        segment_map.link_covisible(
+            keyframe, settings.local_keyframes, settings.covisible_reach, settings.covisible_keyframes,
+            settings.covisible_min_shared, lambda point_ids: frontend._in_view(np.eye(4), point_ids),
+        )  # fmt: skip
+    local = segment_map.local_point_ids(settings.local_keyframes)
+    assert np.isin(visible, local).all()
+    assert np.isin(hidden, local).all() == hidden_in_local_map
+    assert not np.isin(behind, local).any()

@@ -81,10 +81,20 @@ class TrackingConfig:
     min_inliers: int = 40
     #: Keyframes whose map points form the local map projected into each frame.
     local_keyframes: int = 10
+    #: Experimental: older covisible keyframes adding points to the local map (docs/2026-12-07-slow-camera.md)
+    covisible_keyframes: int = 0
+    #: Keyframes before the newest searched for its covisible ones.
+    covisible_reach: int = 64
+    #: Shared map points that make two keyframes covisible (ORB-SLAM: 15).
+    covisible_min_shared: int = 15
     #: Angular-acceleration prior (deg/s^2) on the orientation; 0: none (docs/2026-12-06-config-evidence.md)
     rotation_prior_acceleration: float = 270.0
 
     def __post_init__(self) -> None:
+        if self.covisible_keyframes < 0 or self.covisible_reach < 0 or self.covisible_min_shared < 1:
+            raise ConfigError(
+                "tracking: covisible_keyframes and covisible_reach must be >= 0 and covisible_min_shared >= 1"
+            )
         if self.rotation_prior_acceleration < 0:
             raise ConfigError(
                 "tracking: rotation_prior_acceleration must be >= 0 (0 turns the prior off), "
@@ -110,6 +120,10 @@ class KeyframeConfig:
     triangulation_neighbours: int = 2
     #: Recent keyframes searched for triangulation partners.
     triangulation_window: int = 8
+    #: Keyframes searched back when the window has no baseline (slow camera; docs/2026-12-07-slow-camera.md)
+    triangulation_reach: int = 64
+    #: Share of the tracked points an older partner (beyond the window) must see (ORB-SLAM: covisible).
+    far_partner_min_shared: float = 0.25
     #: Smallest baseline of a triangulation partner (fraction of the median depth).
     min_baseline_ratio: float = 0.035
     #: Experimental: baseline (of median depth) of partners tried first (docs/2026-12-06-config-evidence.md)
@@ -152,6 +166,11 @@ class KeyframeConfig:
             )
         if self.fuse_max_hamming < 0:
             raise ConfigError("keyframes: fuse_max_hamming must be >= 0 (0 turns the fusion off)")
+        if self.triangulation_reach < self.triangulation_window or not 0 <= self.far_partner_min_shared <= 1:
+            raise ConfigError(
+                "keyframes: triangulation_reach must be >= triangulation_window and far_partner_min_shared "
+                f"within [0, 1], got {self.triangulation_reach} and {self.far_partner_min_shared}"
+            )
         if self.covariance_reference_points < 1 or self.covariance_exponent < 0:
             raise ConfigError(
                 "keyframes: covariance_reference_points must be >= 1 and covariance_exponent >= 0"

@@ -12,8 +12,11 @@ the next frame with ``prefetch``); then, by state,
   than ``tracked_ratio`` of the last keyframe's points or ``max_interval`` has passed; the keyframe
   adds its observations, triangulates new points with its newest neighbours that have a baseline
   (``min_baseline_ratio`` of the median depth; keyframes only a frame or two apart see too little
-  parallax to add points), optionally records its points in the keyframes before it
-  (``search_neighbours``), runs the local bundle adjustment (``local_ba``) and culls weak points.
+  parallax to add points; when the camera is so slow that the whole ``triangulation_window`` lies
+  within that baseline, older keyframes that still see the scene are searched), optionally records
+  its points in the keyframes before it (``search_neighbours``), runs the local bundle adjustment
+  (``local_ba``), culls weak points, and links the points of older covisible keyframes that the
+  tracking window lacks (``SegmentMap.link_covisible``: a view half hidden for a while comes back).
 * lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
   features that fail and ``patience_s`` seconds (ORB-SLAM3's "recently lost" state), the segment
   is closed and a new one initialises (``segment`` += 1). Its poses live in a new map frame: they
@@ -52,7 +55,7 @@ from scipy.spatial import cKDTree
 from frontends.base import PointObservations, TrackingState, TrackResult
 from frontends.mono_vo.config import KeyframeConfig, MonoVoConfig
 from frontends.mono_vo.features import Features, OrbExtractor, PrefetchingExtractor, octave_sigmas
-from frontends.mono_vo.geometry import frame_seed, invert, transform
+from frontends.mono_vo.geometry import frame_seed, invert, project, transform
 from frontends.mono_vo.initializer import Initialisation, Initializer
 from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
@@ -377,6 +380,11 @@ class MonoVo:
         self._fuse_duplicates(keyframe)
         self._bundle_adjust()
         self.segment_map.cull(keyframe.id)
+        t = self.config.tracking
+        self.segment_map.link_covisible(
+            keyframe, t.local_keyframes, t.covisible_reach, t.covisible_keyframes, t.covisible_min_shared,
+            lambda ids: self._in_view(keyframe.T_cw, ids),
+        )  # fmt: skip
         keyframe.output.odometry_covariance = self._odometry_covariance(previous, keyframe)
         return keyframe
 
@@ -436,6 +444,14 @@ class MonoVo:
         )
         return held[same], point_ids[same]
 
+    def _in_view(self, T_cw: np.ndarray, point_ids: np.ndarray) -> np.ndarray:
+        """Which map points project in front of the camera at ``T_cw`` and within its image, or
+        within a quarter of the image beyond its borders (where the next frames may bring them)."""
+        uv, depth = project(self.K, T_cw, self.segment_map.points.positions[point_ids])
+        margin = 0.25 * np.array([self.camera.width, self.camera.height])
+        upper = np.array([self.camera.width, self.camera.height]) + margin
+        return (depth > 0) & np.all((uv >= -margin) & (uv < upper), axis=1)
+
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate
     ) -> list[KeyframeState]:
@@ -449,8 +465,23 @@ class MonoVo:
         shared = [
             int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum()) for other in recent
         ]
-        chosen = triangulation_partners(baselines, shared, len(estimate.point_ids), median_depth, s)
-        return [recent[i] for i in chosen]
+        tracked = len(estimate.point_ids)
+        chosen = [recent[i] for i in triangulation_partners(baselines, shared, tracked, median_depth, s)]
+        if len(chosen) < s.triangulation_neighbours:
+            # A slow camera makes keyframes closer together than the baseline: the window's all lie within
+            # it and no new point is made until the map starves (docs/2026-12-07-slow-camera.md). Older
+            # keyframes that still see the scene (as ORB-SLAM's covisible ones) take their place.
+            older = self.segment_map.keyframes[-1 - s.triangulation_reach : -1 - s.triangulation_window]
+            near = s.min_baseline_ratio * median_depth
+            for other in reversed(older):
+                if len(chosen) >= s.triangulation_neighbours:
+                    break
+                if float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center)) < near:
+                    continue
+                seen = int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum())
+                if seen >= s.far_partner_min_shared * tracked:
+                    chosen.append(other)
+        return chosen
 
     def _new_keyframe(self, frame: Frame, T_cw: np.ndarray, features: Features) -> KeyframeState:
         output = Keyframe(

@@ -17,6 +17,7 @@ from a new angle) would show a different patch, so it is not searched for.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,6 +48,9 @@ class KeyframeState:
     #: it as a Sim(3) and the output points3d are divided by it, so both stay in the units the
     #: keyframe's odometry step and loop constraints were measured in.
     scale: float = 1.0
+    #: Points of older covisible keyframes that the tracking window lacks and this keyframe has in
+    #: view (``SegmentMap.link_covisible``); they join the local map while this one is the newest.
+    covisible_points: np.ndarray | None = None
 
 
 @dataclass
@@ -111,12 +115,53 @@ class SegmentMap:
         return len(np.intersect1d(a[a >= 0], b[b >= 0]))
 
     def local_point_ids(self, count: int) -> np.ndarray:
-        """Alive points observed by the last ``count`` keyframes."""
-        recent = [self.live_ids(kf) for kf in self.keyframes[-count:]]
-        if not recent:
+        """Alive points observed by the last ``count`` keyframes, and the newest one's points from
+        covisible keyframes (``link_covisible``)."""
+        window = self.keyframes[-count:]
+        if not window:
             return np.zeros(0, np.int64)
-        ids = np.unique(np.concatenate(recent))
+        extra = window[-1].covisible_points
+        parts = [self.live_ids(kf) for kf in window]
+        if extra is not None and len(extra):
+            parts.append(extra[self.points.alive[extra]])
+        ids = np.unique(np.concatenate(parts))
         return ids[ids >= 0]
+
+    def link_covisible(
+        self,
+        keyframe: KeyframeState,
+        window: int,
+        reach: int,
+        count: int,
+        min_shared: int,
+        in_view: Callable[[np.ndarray], np.ndarray],
+    ) -> None:
+        """Give ``keyframe`` (the newest) the points of its covisible keyframes that the tracking
+        window lacks: among the ``reach`` keyframes before it, those older than the last ``window``
+        that share at least ``min_shared`` alive points with it, the ``count`` with the most such
+        points ``in_view`` (a mask over point ids: in the keyframe's view), newest first on a tie.
+        While something hides part of the view, keyframes come every frame or two and the window
+        forgets the hidden points; these bring them back when the view clears, as ORB-SLAM's
+        covisible local map does (docs/2026-12-07-slow-camera.md)."""
+        keyframe.covisible_points = None
+        older = self.keyframes[max(0, len(self.keyframes) - 1 - reach) : max(0, len(self.keyframes) - window)]
+        own = self.live_ids(keyframe)
+        own = own[own >= 0]
+        if count <= 0 or not older or len(own) < min_shared:
+            return
+        known = np.concatenate([self.live_ids(kf) for kf in self.keyframes[-window:]])
+        extras: list[np.ndarray] = []
+        for other in reversed(older):
+            ids = self.live_ids(other)
+            ids = ids[ids >= 0]
+            if np.count_nonzero(np.isin(ids, own)) < min_shared:
+                continue
+            ids = ids[~np.isin(ids, known)]
+            extras.append(ids[in_view(ids)] if len(ids) else ids)
+        best = np.argsort([-len(e) for e in extras], kind="stable")[:count]
+        chosen = [extras[i] for i in best if len(extras[i])]
+        if chosen:
+            keyframe.covisible_points = np.unique(np.concatenate(chosen))
 
     def observe(
         self, keyframe: KeyframeState, keypoint_idx: np.ndarray, point_ids: np.ndarray, newest: bool = True

@@ -3,12 +3,13 @@
 Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
 
 1. Predict the pose with a constant velocity model.
-2. Project the points of the last ``local_keyframes`` keyframes; match them to keypoints within
-   ``search_radius`` px (Hamming limit, ratio test; ``features.match_in_radius``). Too few matches
-   (a sudden motion) doubles the radius once. As in ORB-SLAM, a point is searched for only if the
-   camera sees it within ``max_view_angle_deg`` of its mean viewing direction and within its
-   scale-invariance distance range, only among keypoints within one pyramid level of the level its
-   distance predicts, and the matches must agree on the keypoint rotation (orientation histogram).
+2. Project the points of the last ``local_keyframes`` keyframes (and those of older covisible
+   keyframes the newest keyframe has in view: ``SegmentMap.link_covisible``); match them to
+   keypoints within ``search_radius`` px (Hamming limit, ratio test; ``features.match_in_radius``).
+   Too few matches (a sudden motion) doubles the radius once. As in ORB-SLAM, a point is searched
+   for only if the camera sees it within ``max_view_angle_deg`` of its mean viewing direction and
+   within its scale-invariance distance range, only among keypoints within one pyramid level of the
+   level its distance predicts, and the matches must agree on the keypoint rotation (orientation histogram).
    Without these rules, background points hidden behind a near object passing in front of them
    were still projected and matched to the object's (repetitive) texture, and PnP followed the
    occluder while reporting a normal inlier count.
