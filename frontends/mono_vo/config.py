@@ -122,7 +122,7 @@ class KeyframeConfig:
     triangulation_window: int = 8
     #: Keyframes searched back when the window has no baseline (slow camera; docs/2026-12-07-slow-camera.md)
     triangulation_reach: int = 64
-    #: Share of the tracked points an older partner (beyond the window) must see (ORB-SLAM: covisible).
+    #: Share of the tracked points an older partner (beyond the window) must see.
     far_partner_min_shared: float = 0.25
     #: Smallest baseline of a triangulation partner (fraction of the median depth).
     min_baseline_ratio: float = 0.035

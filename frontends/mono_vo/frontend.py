@@ -15,8 +15,9 @@ the next frame with ``prefetch``); then, by state,
   parallax to add points; when the camera is so slow that the whole ``triangulation_window`` lies
   within that baseline, older keyframes that still see the scene are searched), optionally records
   its points in the keyframes before it (``search_neighbours``), runs the local bundle adjustment
-  (``local_ba``), culls weak points, and links the points of older covisible keyframes that the
-  tracking window lacks (``SegmentMap.link_covisible``: a view half hidden for a while comes back).
+  (``local_ba``) and culls weak points. With the experimental ``covisible_keyframes`` it also
+  links the in-view points of older covisible keyframes that the tracking window lacks
+  (``SegmentMap.link_covisible``: a view half hidden for a while comes back).
 * lost: relocalisation against recent keyframes of the segment; after ``patience`` frames with
   features that fail and ``patience_s`` seconds (ORB-SLAM3's "recently lost" state), the segment
   is closed and a new one initialises (``segment`` += 1). Its poses live in a new map frame: they

@@ -3,8 +3,8 @@
 Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
 
 1. Predict the pose with a constant velocity model.
-2. Project the points of the last ``local_keyframes`` keyframes (and those of older covisible
-   keyframes the newest keyframe has in view: ``SegmentMap.link_covisible``); match them to
+2. Project the points of the last ``local_keyframes`` keyframes (with the experimental
+   ``covisible_keyframes``, also those ``SegmentMap.link_covisible`` linked); match them to
    keypoints within ``search_radius`` px (Hamming limit, ratio test; ``features.match_in_radius``).
    Too few matches (a sudden motion) doubles the radius once. As in ORB-SLAM, a point is searched
    for only if the camera sees it within ``max_view_angle_deg`` of its mean viewing direction and
