@@ -449,9 +449,8 @@ class MonoVo:
         """Which map points project in front of the camera at ``T_cw`` and within its image, or
         within a quarter of the image beyond its borders (where the next frames may bring them)."""
         uv, depth = project(self.K, T_cw, self.segment_map.points.positions[point_ids])
-        margin = 0.25 * np.array([self.camera.width, self.camera.height])
-        upper = np.array([self.camera.width, self.camera.height]) + margin
-        return (depth > 0) & np.all((uv >= -margin) & (uv < upper), axis=1)
+        size = np.array([self.camera.width, self.camera.height])
+        return (depth > 0) & np.all((uv >= -0.25 * size) & (uv < 1.25 * size), axis=1)
 
     def _triangulation_neighbours(
         self, keyframe: KeyframeState, estimate: PoseEstimate

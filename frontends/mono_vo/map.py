@@ -145,9 +145,11 @@ class SegmentMap:
         covisible local map does (docs/2026-12-07-slow-camera.md)."""
         keyframe.covisible_points = None
         older = self.keyframes[max(0, len(self.keyframes) - 1 - reach) : max(0, len(self.keyframes) - window)]
+        if count <= 0 or not older:
+            return
         own = self.live_ids(keyframe)
         own = own[own >= 0]
-        if count <= 0 or not older or len(own) < min_shared:
+        if len(own) < min_shared:
             return
         known = np.concatenate([self.live_ids(kf) for kf in self.keyframes[-window:]])
         extras: list[np.ndarray] = []
