@@ -184,10 +184,21 @@ def test_odometry_covariance_grows_when_keyframes_share_few_points(
         "keyframes.search_neighbours=-1",
         "keyframes.search_radius=0",
         "keyframes.fuse_max_hamming=-1",
+        "keyframes.triangulation_reach=4",
+        "keyframes.far_partner_min_shared=1.5",
     ],
 )
 def test_bad_keyframe_settings_are_config_errors(override: str) -> None:
     with pytest.raises(ConfigError, match="keyframes: "):
+        load_config(MonoVoConfig, None, [override])
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["tracking.covisible_keyframes=-1", "tracking.covisible_reach=-1", "tracking.covisible_min_shared=0"],
+)
+def test_bad_covisible_settings_are_config_errors(override: str) -> None:
+    with pytest.raises(ConfigError, match="tracking: covisible"):
         load_config(MonoVoConfig, None, [override])
 
 
