@@ -36,6 +36,7 @@ from frontends.mono_vo.geometry import (
     triangulate,
 )
 from frontends.mono_vo.initializer import Initializer
+from frontends.mono_vo.local_ba import local_bundle_adjustment
 from frontends.mono_vo.map import KeyframeState, SegmentMap
 from frontends.mono_vo.tracker import PoseEstimate, Tracker, refine_with_rotation_prior
 from frontends.synth import SynthConfig
@@ -1065,3 +1066,40 @@ def test_points_hidden_for_more_keyframes_than_the_window_stay_in_the_local_map(
     assert np.isin(visible, local).all()
     assert np.isin(hidden, local).all() == hidden_in_local_map
     assert not np.isin(behind, local).any()
+
+
+@pytest.mark.parametrize("older", [4, 1])
+def test_local_ba_recovers_the_window_and_keeps_the_anchors(older: int) -> None:
+    """Ten keyframes 10 cm apart see 300 points exactly; the last six and every point are
+    disturbed. Local BA brings them back to the truth, and the older keyframes stay put: four
+    anchors enter as fixed cameras, a single one as a variable whose distance to the window holds
+    the scale (local_ba.py)."""
+    camera = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    frontend = create(camera, ["ba.iterations=30", "ba.relative_error_tolerance=1e-9"])
+    segment_map = frontend.segment_map
+    rng = np.random.default_rng(3)
+    truth = np.column_stack([rng.uniform(-1.5, 1.5, 300), rng.uniform(-1, 1, 300), rng.uniform(2, 4, 300)])
+    ids = segment_map.points.add(truth + rng.normal(0, 0.01, truth.shape), 0)
+    poses = []
+    for k in range(6 + older):
+        T_cw = np.eye(4)
+        T_cw[:3, :3] = Rotation.from_euler("y", 0.5 * k, degrees=True).as_matrix()
+        T_cw[:3, 3] = -T_cw[:3, :3] @ np.array([0.1 * k, 0.0, 0.0])
+        uv, _ = project(frontend.K, T_cw, truth)
+        features = Features(
+            uv.astype(np.float32), uv, np.zeros((300, 32), np.uint8), np.zeros(300, int), np.zeros(300)
+        )
+        disturbed = T_cw.copy()
+        if k > older:  # the window's first keyframe keeps its pose: with one anchor it holds the scale
+            turn = Rotation.from_euler("xz", rng.normal(0, 0.5, 2), degrees=True).as_matrix()
+            disturbed[:3, :3] = turn @ T_cw[:3, :3]
+            disturbed[:3, 3] += rng.normal(0, 0.02, 3)
+        keyframe = KeyframeState(k, 3 * k, k / 10, disturbed, features, np.full(300, -1), None)  # type: ignore[arg-type]
+        segment_map.keyframes.append(keyframe)
+        segment_map.observe(keyframe, np.arange(300), ids)
+        poses.append(T_cw)
+    stats = local_bundle_adjustment(segment_map, frontend.K, frontend.octave_sigma, frontend.config.ba)
+    assert stats is not None and stats.keyframes == 6 and stats.outliers == 0
+    for keyframe, T_cw in zip(segment_map.keyframes, poses, strict=True):
+        np.testing.assert_allclose(keyframe.T_cw, T_cw, atol=1e-5)
+    np.testing.assert_allclose(segment_map.points.positions[ids], truth, atol=1e-4)
