@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from frontends.mono_vo.features import OrbExtractor
-from frontends.orb import TRACKING_ORB, OrbConfig, detect_orb, extract_orb
+from frontends.orb import TRACKING_ORB, OrbConfig, detect_orb, extract_orb, group_order
 from frontends.types import CameraIntrinsics, Keyframe
 
 #: The extractor before adaptation: area-scaled budget without a floor, no upsampling, no cells.
@@ -135,3 +135,14 @@ def test_low_resolution_real_loops_verify(shared: Path) -> None:
     fixed, adapted = verified(FIXED), verified(OrbConfig())
     assert adapted >= 0.6 * len(pairs)
     assert adapted >= 2 * fixed
+
+
+@pytest.mark.parametrize("integer", [True, False])
+def test_group_order_is_lexsorts_order_with_ties_in_input_order(integer: bool) -> None:
+    """The tracker's fast path (one integer key) sorts like ``np.lexsort((distance, group))``:
+    by group, then distance, equal pairs in input order (which match wins a tie depends on it)."""
+    rng = np.random.default_rng(2)
+    group = rng.integers(0, 50, 4000)
+    distance = rng.integers(0, 20, 4000) if integer else rng.integers(0, 20, 4000) / 4.0
+    np.testing.assert_array_equal(group_order(group, distance), np.lexsort((distance, group)))
+    assert len(group_order(group[:0], distance[:0])) == 0

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.orb import OrbConfig, detect_orb, hamming, unique_targets
+from frontends.orb import OrbConfig, detect_orb, group_order, hamming, unique_targets
 from frontends.types import CameraIntrinsics
 
 
@@ -134,7 +134,7 @@ def best_two_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndar
     """Per group: the index of its smallest distance and the second smallest distance (inf if none)."""
     if len(group) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    order = np.lexsort((distance, group))
+    order = group_order(group, distance)
     sorted_group = group[order]
     first = np.flatnonzero(np.r_[True, sorted_group[1:] != sorted_group[:-1]])
     has_second = np.r_[first[1:], len(order)] - first > 1
