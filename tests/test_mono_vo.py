@@ -924,6 +924,30 @@ def test_tracking_with_a_sound_ransac_pose_is_unchanged_by_a_poor_prediction() -
     assert estimate is not None and _rotation_error_deg(estimate.T_cw, true) < 0.1
 
 
+@pytest.mark.parametrize(("offset_px", "searches"), [(0.0, 1), (0.5, 2)])
+def test_a_prediction_that_agrees_with_ransac_is_not_searched_again(
+    monkeypatch: pytest.MonkeyPatch, offset_px: float, searches: int
+) -> None:
+    """The refined prediction projects the matches within ``SAME_POSE_PX`` of RANSAC's pose: its
+    narrow search would find RANSAC's matches, so it is skipped; half a pixel apart it runs."""
+    tracker, segment_map, features, true = _tracking_problem(2)
+    shifted = true.copy()
+    shifted[0, 3] += offset_px * 2.5 / 525.0  # points 2-3 m away move by <= offset_px
+    monkeypatch.setattr(Tracker, "_pnp_ransac", lambda self, *args: true)
+    monkeypatch.setattr(Tracker, "_refine_prediction", lambda self, *args: shifted)
+    poses: list[np.ndarray] = []
+    search = Tracker._local_map_matches
+
+    def counted(self: Tracker, *args: object) -> tuple[np.ndarray, np.ndarray]:
+        poses.append(args[-1])  # type: ignore[arg-type]
+        return search(self, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Tracker, "_local_map_matches", counted)
+    estimate = tracker.track(segment_map, features, cKDTree(features.points), true, 1)
+    assert estimate is not None and len(poses) == searches
+    assert np.array_equal(poses[0], true)
+
+
 def test_fusing_duplicate_points_moves_their_observations_to_the_better_observed_one() -> None:
     """Points 0 and 3 are one scene point mapped twice (0 seen by three keyframes, 3 by two,
     one of them also seeing 0); 1 and 2 stay apart."""

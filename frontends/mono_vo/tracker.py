@@ -21,7 +21,8 @@ Tracking (ORB-SLAM's motion model + local map tracking, folded into one pass):
    matches are the frame's observations (a keyframe's map points). Where the map is seen in a strip
    beside a near object, a minimal sample can put RANSAC in the wrong basin of a nearly flat cost
    (synthetic loop 2, frame 274: 2.5 deg off, after which tracking was lost within 20 frames); the
-   motion model's pose is a second start, judged on its own matches like RANSAC's.
+   motion model's pose is a second start, judged on its own matches like RANSAC's. Where the two
+   poses project the matched points within ``SAME_POSE_PX`` of each other, only RANSAC's searches.
 5. With a rotation prior (``rotation_prior_acceleration``), the winning pose is refined once
    more on its matches together with the prediction's orientation (``refine_with_rotation_prior``),
    and the matches that no longer fit it are dropped. A plain refinement on the final matches,
@@ -59,6 +60,11 @@ from frontends.mono_vo.geometry import (
 )
 from frontends.mono_vo.map import SegmentMap
 from frontends.orb import match_descriptors
+
+#: Two pose hypotheses that project every matched point this close (px) gather the same matches:
+#: the second search is skipped (figure8 0: 67 % of the frames, 88 % of them with identical
+#: matches, 0.15 matches apart on average; docs/2026-12-07-frame-rate.md).
+SAME_POSE_PX = 0.1
 
 
 @dataclass(frozen=True)
@@ -120,6 +126,12 @@ class Tracker:
             self._pnp_ransac(segment_map, features, keypoint_idx, point_ids, frame_index, least),
             self._refine_prediction(segment_map, features, keypoint_idx, point_ids, T_predicted, least),
         ]
+        if hypotheses[0] is not None and hypotheses[1] is not None:
+            positions = segment_map.points.positions[point_ids]
+            uv_ransac, _ = project(self.K, hypotheses[0], positions)
+            uv_predicted, _ = project(self.K, hypotheses[1], positions)
+            if np.nanmax(np.abs(uv_ransac - uv_predicted), initial=0.0) < SAME_POSE_PX:
+                hypotheses.pop()  # RANSAC's pose would gather the same matches and win the tie
         # Each pose gathers its own matches from the local map; the one with more wins (RANSAC's on
         # a tie). Scored on the wide search's matches instead, the prediction would be favoured by
         # the matches its own search window selected (measured: 4 more collapses in 10 runs).
