@@ -12,6 +12,7 @@ camera intrinsics and ``--set key=value`` overrides / a YAML file.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
@@ -107,24 +108,37 @@ class PrefetchingFrontend(Frontend, Protocol):
         ...
 
 
-def with_lookahead(frames: Iterable[Frame], frontend: Frontend) -> Iterator[Frame]:
-    """``frames`` one by one; a ``PrefetchingFrontend`` hears of each frame one step ahead, so the
-    next frame's features are extracted while the current one is tracked."""
+#: Frames a ``PrefetchingFrontend`` hears of ahead of their turn. More than one: while a keyframe's
+#: local BA holds the main thread (100-200 ms), the extraction thread runs on through the next
+#: frames, which then find their features done (docs/2026-12-07-frame-rate.md).
+LOOKAHEAD_FRAMES = 4
+
+
+def with_lookahead(
+    frames: Iterable[Frame], frontend: Frontend, depth: int = LOOKAHEAD_FRAMES
+) -> Iterator[Frame]:
+    """``frames`` one by one; a ``PrefetchingFrontend`` hears of each frame ``depth`` steps ahead,
+    so the next frames' features are extracted while the current one is tracked. Frames already
+    read are tracked before an error of the reader ends the run."""
     if not isinstance(frontend, PrefetchingFrontend):
         yield from frames
         return
     iterator = iter(frames)
-    current = next(iterator, None)
-    while current is not None:
-        try:
-            following = next(iterator, None)
-        except BaseException:
-            yield current  # the frame already read is tracked before the reader's error ends the run
-            raise
-        if following is not None:
+    ahead: deque[Frame] = deque()
+    while True:
+        while len(ahead) <= depth:
+            try:
+                following = next(iterator, None)
+            except BaseException:
+                yield from ahead  # the frames already read are tracked before the error ends the run
+                raise
+            if following is None:
+                break
             frontend.prefetch(following)
-        yield current
-        current = following
+            ahead.append(following)
+        if not ahead:
+            return
+        yield ahead.popleft()
 
 
 class FrontendFactory(Protocol):

@@ -286,11 +286,13 @@ def test_mono_vo_smoke(small_loop_scene: Path, tmp_path: Path) -> None:
         assert (out / name).is_file()
 
 
+@pytest.mark.parametrize("prefetching", [False, True])
 def test_an_interrupted_run_counts_no_skip_the_reader_met_ahead_of_it(
-    small_loop_scene: Path, tmp_path: Path
+    small_loop_scene: Path, tmp_path: Path, prefetching: bool
 ) -> None:
-    """Frames decode ahead of tracking (frontends.datasets.base.ReadAhead): broken frames the reader
-    met after the last frame handed to the run are not the run's skips."""
+    """Frames decode ahead of tracking (frontends.datasets.base.ReadAhead), and a prefetching
+    frontend hears of frames a few ahead of their turn (frontends.base.with_lookahead): broken
+    frames met after the last frame tracked are not the run's skips."""
     scene = tmp_path / "scene"
     shutil.copytree(small_loop_scene, scene)
     dataset = open_dataset(scene)
@@ -303,7 +305,12 @@ def test_an_interrupted_run_counts_no_skip_the_reader_met_ahead_of_it(
                 time.sleep(1.0)  # the reader meanwhile fills its queue: 41, then 44 past the broken two
             return super().track(frame)
 
-    frontend = SlowFailingFrontend(scene, {40}, KeyboardInterrupt)
+    class PrefetchingFailingFrontend(SlowFailingFrontend):
+        def prefetch(self, frame: Frame) -> None:
+            pass  # with_lookahead now reads frames 41-45 (42, 43 skipped) before 40 is tracked
+
+    kind = PrefetchingFailingFrontend if prefetching else SlowFailingFrontend
+    frontend = kind(scene, {40}, KeyboardInterrupt)
     with pytest.raises(KeyboardInterrupt):
         run_odometry(
             dataset,

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from frontends.base import LOOKAHEAD_FRAMES
 from frontends.orb import OrbConfig, detect_orb, group_order, hamming, unique_targets
 from frontends.types import CameraIntrinsics
 
@@ -143,6 +144,10 @@ def best_two_per_group(group: np.ndarray, distance: np.ndarray) -> tuple[np.ndar
     return order[first], second
 
 
+#: Prefetched frames an extractor holds at most (the newest).
+MAX_PREFETCHED = 2 * LOOKAHEAD_FRAMES
+
+
 class PrefetchingExtractor:
     """An ``OrbExtractor`` that can run one frame ahead on a worker thread.
 
@@ -157,11 +162,12 @@ class PrefetchingExtractor:
         self.extractor = extractor
         self._worker: ThreadPoolExecutor | None = None
         #: Frames handed to ``prefetch`` (matched by identity), oldest first, with their features
-        #: being computed: the current frame's and the next one's.
+        #: being computed: the current frame's and the next ones' (``frontends.base.with_lookahead``).
         self._pending: list[tuple[object, Future[Features]]] = []
 
     def prefetch(self, frame: object, gray: Callable[[], np.ndarray]) -> None:
-        self._pending = [*self._pending[-1:], (frame, self._submit(gray))]
+        # Bounded: frames prefetched but never tracked (a caller that skips them) do not pile up.
+        self._pending = [*self._pending[-MAX_PREFETCHED + 1 :], (frame, self._submit(gray))]
 
     def extract(self, frame: object, gray: Callable[[], np.ndarray]) -> Features:
         for position, (pending, future) in enumerate(self._pending):
