@@ -234,7 +234,7 @@ def group_order(group: np.ndarray, distance: np.ndarray) -> np.ndarray:
     distances (Hamming) sort as one key, ~1.6x faster (the tracker runs it several times per frame)."""
     if np.issubdtype(distance.dtype, np.integer) and len(distance) and distance.min() >= 0:
         span = int(distance.max()) + 1
-        if int(group.max()) < np.iinfo(np.int64).max // span:
+        if max(abs(int(group.min())), abs(int(group.max()))) < np.iinfo(np.int64).max // (2 * span):
             return np.argsort(group.astype(np.int64) * span + distance, kind="stable")
     return np.lexsort((distance, group))
 

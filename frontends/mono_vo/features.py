@@ -149,9 +149,9 @@ MAX_PREFETCHED = 2 * LOOKAHEAD_FRAMES
 
 
 class PrefetchingExtractor:
-    """An ``OrbExtractor`` that can run one frame ahead on a worker thread.
+    """An ``OrbExtractor`` that can run frames ahead on a worker thread.
 
-    OpenCV releases the GIL, so the next frame's ORB runs on the second core while this frame is
+    OpenCV releases the GIL, so the next frames' ORB runs on the second core while this frame is
     tracked (bundle adjustment in GTSAM holds the GIL, extraction does not need it). Every extraction
     runs on the one worker thread, because a ``cv2.ORB`` must not be used by two threads at once;
     the features are those of inline extraction, so runs stay deterministic. Pending work does not
