@@ -181,10 +181,11 @@ def _run_into(
         stream = checkpointer.track(stream)
 
     # The last frame tracked: with_lookahead reads a few frames ahead of it.
-    reached = [-1 if resume is None else resume.next_index - 1]
+    reached = -1 if resume is None else resume.next_index - 1
 
     def after_frame(frame: Frame, result: TrackResult) -> None:
-        reached[0] = frame.index
+        nonlocal reached
+        reached = frame.index
         if viewer is not None:
             viewer.frame(frame, result)
         if checkpointer is not None:
@@ -205,7 +206,7 @@ def _run_into(
     except BaseException:
         reader.close()
         if not reader.finished:  # what was read ahead was never tracked: those skips are not the run's
-            dataset.forget_skips_after(reached[0])
+            dataset.forget_skips_after(reached)
         state.interrupted = True
         log.warning("run stopped after %d frames; writing what exists to %s", len(state.results), folder.root)
         write_outputs(folder, dataset, slam.finish(), state, tolerance, config or {}, viewer)

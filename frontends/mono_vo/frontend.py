@@ -460,11 +460,17 @@ class MonoVo:
         depths = transform(keyframe.T_cw, self.segment_map.points.positions[estimate.point_ids])[:, 2]
         median_depth = float(np.median(depths)) if len(depths) else 0.0
         center = invert(keyframe.T_cw)[:3, 3]
+
+        def baseline(other: KeyframeState) -> float:
+            return float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center))
+
+        def seen(other: KeyframeState) -> int:
+            """How many of the tracked points ``other`` observes."""
+            return int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum())
+
         recent = list(reversed(self.segment_map.keyframes[-1 - s.triangulation_window : -1]))
-        baselines = [float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center)) for other in recent]
-        shared = [
-            int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum()) for other in recent
-        ]
+        baselines = [baseline(other) for other in recent]
+        shared = [seen(other) for other in recent]
         tracked = len(estimate.point_ids)
         chosen = [recent[i] for i in triangulation_partners(baselines, shared, tracked, median_depth, s)]
         if len(chosen) < s.triangulation_neighbours:
@@ -476,10 +482,7 @@ class MonoVo:
             for other in reversed(older):
                 if len(chosen) >= s.triangulation_neighbours:
                     break
-                if float(np.linalg.norm(invert(other.T_cw)[:3, 3] - center)) < near:
-                    continue
-                seen = int(np.isin(self.segment_map.live_ids(other), estimate.point_ids).sum())
-                if seen >= s.far_partner_min_shared * tracked:
+                if baseline(other) >= near and seen(other) >= s.far_partner_min_shared * tracked:
                     chosen.append(other)
         return chosen
 
