@@ -4,6 +4,8 @@ adjusted points."""
 
 from __future__ import annotations
 
+import logging
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -140,6 +142,34 @@ def test_the_default_settings_reach_the_converged_map() -> None:
     assert _aligned_error(default.poses, poses) < 0.006
 
 
+def _solve_iterations(caplog, keyframes, estimates, loops, config):
+    """The adjusted map and the Levenberg-Marquardt iterations of each of its solves (the log)."""
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="slam_backend.global_ba"):
+        adjusted = global_bundle_adjustment(keyframes, estimates, loops, CAMERA, config)
+    found = re.findall(r"(\d+) Levenberg-Marquardt iterations", caplog.text)
+    return adjusted, [int(n) for n in found]
+
+
+def test_the_damping_bound_stops_the_solver_where_steps_gain_nothing(caplog) -> None:
+    """``max_lambda`` reaches GTSAM. From a badly drifted start (3 deg of yaw per keyframe) LM's steps
+    fail and it raises the damping: the default bound stops it sooner than the unbounded solver, at
+    the same map (the gains past the bound are tiny); a bound at the first damping stops it at once."""
+    poses, keyframes, loops, estimates, _ = _loop_scene(0)
+    for k, pose in enumerate(poses):
+        drifted = pose.copy()
+        drifted[:3, :3] = _yaw(np.radians(3.0) * k) @ pose[:3, :3]
+        drifted[:3, 3] = _yaw(np.radians(3.0) * k) @ pose[:3, 3] + np.array([0.18, -0.12, 0.09]) * k
+        estimates[k] = drifted
+    configs = [GlobalBundleAdjustmentConfig(max_lambda=b) for b in (1e5, 0.1, 2e-5)]
+    assert configs[1] == GlobalBundleAdjustmentConfig()
+    runs = [_solve_iterations(caplog, keyframes, estimates, loops, config) for config in configs]
+    (free, free_its), (bounded, bounded_its), (_, first_its) = runs
+    assert free is not None and bounded is not None
+    assert sum(first_its) < sum(bounded_its) < sum(free_its)
+    assert abs(_aligned_error(bounded.poses, poses) / _aligned_error(free.poses, poses) - 1) < 0.01
+
+
 def _remapped(keyframes: list[Keyframe], points: int, seed: int, consistent: bool = True) -> list[Keyframe]:
     """The same wall mapped again and again: each point gets a new id every 4 keyframes (staggered
     per point), as a frontend that loses points and triangulates them anew does; descriptors are
@@ -240,6 +270,7 @@ def test_repose_frame_from_adjusted_points() -> None:
         ("weak_keyframe_share", 1.0),
         ("weak_keyframe_share", -0.1),
         ("max_gather_mb", -1.0),
+        ("max_lambda", 0.0),
     ],
 )
 def test_bad_settings_are_config_errors(field: str, value: float) -> None:
