@@ -16,6 +16,12 @@ covariance, or a rejection with its reason. The ``pycolmap`` verifier (default):
    any 3D threshold would allow (docs/2026-12-07-sim3-reprojection.md).
 4. The rotation and translation are refined, with their covariance, by PnP of the query's
    keypoints against the match's points (``pycolmap.estimate_and_refine_absolute_pose``).
+5. The whole scene must agree, not only the matched points (ORB-SLAM's search by projection after
+   its Sim(3)): of the match's map points that the constraint puts in the query's view, at least
+   ``min_scene_share`` find a query keypoint within ``max_reprojection_error_px`` whose descriptor
+   is within ``max_hamming``. Two instances of one object model (the same texture) give 30-35
+   epipolar inliers that fit one rigid motion, 90 deg off; their scene around them does not
+   follow (shares 0.12-0.20 against >= 0.48 for right loops; docs/2026-12-07-aliased-loops.md).
 
 The constraint is ``relative = match_from_query`` as a 4x4 ``[s R, t; 0, 1]`` (a query-camera point
 X maps to s R X + t in the match camera), which is what ``PoseGraphBackend.add_loop(match, query,
@@ -38,11 +44,12 @@ from typing import Any, Protocol
 
 import numpy as np
 import pycolmap
+from scipy.spatial import cKDTree
 
 from frontends.config import load_config
 from frontends.errors import ConfigError
 from frontends.mono_vo.masking import inside
-from frontends.orb import match_descriptors
+from frontends.orb import hamming, match_descriptors
 from frontends.types import CameraIntrinsics, Keyframe
 from lcd.objects.filtering import WALKING_LABELS
 from slam_backend import plugins
@@ -116,6 +123,8 @@ class VerifierConfig:
     min_point_inlier_ratio: float = 0.7
     #: PnP RANSAC threshold, and the Sim(3)'s reprojection threshold in both images (pixels).
     max_reprojection_error_px: float = 4.0
+    #: Share of the match's map points put in the query's view that find a keypoint there (step 5 above)
+    min_scene_share: float = 0.3
     #: Floor of the constraint's rotation sigma (rad): the estimates' spread ignores systematic errors.
     min_rotation_sigma_rad: float = 0.003
     #: Floor of the constraint's translation sigma (fraction of the match's median point depth).
@@ -136,6 +145,8 @@ class VerifierConfig:
             raise ConfigError("verifier: min_matches, min_inliers and min_points must be >= 5")
         if not 0 <= self.min_inlier_ratio <= 1 or not 0 <= self.min_point_inlier_ratio <= 1:
             raise ConfigError("verifier: inlier ratios must be in [0, 1]")
+        if not 0 <= self.min_scene_share <= 1:
+            raise ConfigError("verifier: min_scene_share must be in [0, 1]")
 
 
 def colmap_camera(camera: CameraIntrinsics) -> pycolmap.Camera:
@@ -334,8 +345,46 @@ class PycolmapVerifier:
             max(_log_scale_variance(source[good], target[good]), config.min_log_scale_sigma**2),
         )
         covariance = np.diag(np.repeat(variances, (3, 3, 1)))
+        found, in_view = self._scene_agreement(query, match, relative)
+        if found < config.min_scene_share * in_view:
+            return Verification(
+                *ids,
+                False,
+                f"{found} of the match's {in_view} map points in the query's view find a keypoint there "
+                f"(need share {config.min_scene_share}): only the matched part of the scene agrees",
+                matches,
+                inliers,
+            )
         correspondences = both[good][pnp_inliers]
         return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance, correspondences)
+
+    def _scene_agreement(self, query: Keyframe, match: Keyframe, relative: np.ndarray) -> tuple[int, int]:
+        """(found, in view): the match's map points that ``relative`` (match_from_query Sim(3))
+        puts in the query's image, and how many of them have a query keypoint within
+        ``max_reprojection_error_px`` whose descriptor is within ``max_hamming`` bits."""
+        assert match.points3d is not None
+        mapped = np.flatnonzero(np.isfinite(match.points3d).all(axis=1))
+        query_from_match = np.linalg.inv(relative)
+        in_query = match.points3d[mapped] @ query_from_match[:3, :3].T + query_from_match[:3, 3]
+        # Points behind the camera project to NaN, which is never in view.
+        pixels = np.asarray(self.camera.img_from_cam(in_query.astype(np.float64)), dtype=np.float64)
+        seen = (
+            (pixels[:, 0] >= 0) & (pixels[:, 0] < self.camera.width)
+            & (pixels[:, 1] >= 0) & (pixels[:, 1] < self.camera.height)
+        )  # fmt: skip
+        if not seen.any() or len(query.keypoints) == 0:
+            return 0, int(seen.sum())
+        near = cKDTree(np.asarray(query.keypoints, dtype=np.float64)).query_ball_point(
+            pixels[seen], self.config.max_reprojection_error_px
+        )
+        counts = np.array([len(n) for n in near], dtype=np.int64)
+        owner = np.repeat(np.arange(len(near)), counts)
+        if len(owner) == 0:
+            return 0, int(seen.sum())
+        candidates = np.concatenate([np.asarray(n, dtype=np.int64) for n in near if n])
+        distance = hamming(match.descriptors[mapped[seen][owner]], query.descriptors[candidates])
+        found = np.unique(owner[distance <= self.config.max_hamming])
+        return len(found), int(seen.sum())
 
     def _reprojected(
         self,

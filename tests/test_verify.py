@@ -12,7 +12,7 @@ from frontends.errors import ConfigError
 from frontends.orb import match_descriptors
 from frontends.synth.render import SceneRenderer
 from frontends.synth.world import SynthConfig
-from frontends.types import Keyframe
+from frontends.types import CameraIntrinsics, Keyframe
 from slam_backend.verify import (
     VERIFIERS,
     Verifier,
@@ -21,6 +21,8 @@ from slam_backend.verify import (
     create,
     verify_two_view,
 )
+
+CAMERA_640 = CameraIntrinsics(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
 
 
 @pytest.fixture(scope="module")
@@ -175,3 +177,64 @@ def test_deterministic(renderer: SceneRenderer) -> None:
     b = create(scene_camera(renderer), ["seed=5"]).verify(query, match)
     assert a.relative is not None and b.relative is not None
     np.testing.assert_array_equal(a.relative, b.relative)
+
+
+def _look(position: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """Camera-to-world pose at ``position`` looking along the world direction ``yaw_deg`` (x-y plane)."""
+    yaw = np.radians(yaw_deg)
+    forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([right, np.cross(forward, right), forward])
+    pose[:3, 3] = position
+    return pose
+
+
+def _seen_by(
+    pose: np.ndarray, points: np.ndarray, descriptors: np.ndarray, rng: np.random.Generator, kf_id: int
+):
+    """A keyframe of the world ``points`` (with their ``descriptors``) that ``pose`` sees: 0.5 px
+    keypoint noise, 1 % depth noise, 1/16 of the descriptor bits flipped."""
+    camera = np.linalg.inv(pose)
+    local = points @ camera[:3, :3].T + camera[:3, 3]
+    uv = 500.0 * local[:, :2] / local[:, 2:] + (320.0, 240.0)
+    seen = (local[:, 2] > 0.2) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    flips = np.bitwise_and.reduce(rng.integers(0, 256, (4, int(seen.sum()), 32), dtype=np.uint8))
+    return Keyframe(
+        id=kf_id, frame_index=kf_id, timestamp=float(kf_id), pose=pose,
+        keypoints=(uv[seen] + rng.normal(0, 0.5, (int(seen.sum()), 2))).astype(np.float32),
+        descriptors=descriptors[seen] ^ flips,
+        points3d=local[seen] * rng.normal(1.0, 0.01, (int(seen.sum()), 1)),
+    )  # fmt: skip
+
+
+def test_two_copies_of_one_object_are_not_a_loop() -> None:
+    """Two instances of one object model (the same texture) stand in different rooms, 90 deg apart.
+    Their 40 keypoints match and fit one rigid motion, so the images and the two maps agree on it;
+    the walls around them do not follow that motion (the false loops of the 9000-frame loop 2,
+    docs/2026-12-07-aliased-loops.md). Seen from the same room, the same pair is a loop."""
+    rng = np.random.default_rng(7)
+    model = rng.uniform(-0.3, 0.3, (40, 3))
+    model_descriptors = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    walls = [rng.uniform((-4, 3, -1.5), (4, 3.3, 1.5), (600, 3)) for _ in range(2)]
+    wall_descriptors = [rng.integers(0, 256, (600, 32), dtype=np.uint8) for _ in range(2)]
+    # Room 0 looks north at its copy (at y = 1.5); room 1 is 20 m away and turned by 90 deg.
+    turn = _look(np.array([20.0, 0.0, 0.0]), 180.0) @ np.linalg.inv(_look(np.zeros(3), 90.0))
+    placed = model + np.array([0.0, 1.5, 0.0])
+    copy = [placed, placed @ turn[:3, :3].T + turn[:3, 3]]
+    room = [
+        np.vstack([copy[0], walls[0]]),
+        np.vstack([copy[1], walls[1] @ turn[:3, :3].T + turn[:3, 3]]),
+    ]
+    descriptors = [np.vstack([model_descriptors, d]) for d in wall_descriptors]
+    verifier = create(CAMERA_640)
+    match = _seen_by(_look(np.zeros(3), 90.0), room[0], descriptors[0], rng, 0)
+    # The query stands 0.3 m aside of where the match stood, in the other room.
+    query = _seen_by(turn @ _look(np.array([0.3, 0.0, 0.0]), 95.0), room[1], descriptors[1], rng, 1)
+    aliased = verifier.verify(query, match)
+    assert not aliased.verified and "find a keypoint there" in aliased.reason
+    assert aliased.inliers >= 30  # every earlier stage passed
+    revisit = _seen_by(_look(np.array([0.3, 0.0, 0.0]), 95.0), room[0], descriptors[0], rng, 2)
+    assert verifier.verify(revisit, match).verified
+    with pytest.raises(ConfigError, match="min_scene_share"):
+        VerifierConfig(min_scene_share=1.5)
