@@ -21,7 +21,7 @@ covariance, or a rejection with its reason. The ``pycolmap`` verifier (default):
    ``min_scene_share`` find a query keypoint within ``max_reprojection_error_px`` whose descriptor
    is within ``max_hamming``. Two instances of one object model (the same texture) give 30-35
    epipolar inliers that fit one rigid motion, 90 deg off; their scene around them does not
-   follow (shares 0.12-0.20 against >= 0.48 for right loops; docs/2026-12-07-aliased-loops.md).
+   follow (shares 0.12-0.20 against >= 0.47 for right loops; docs/2026-12-07-aliased-loops.md).
 
 The constraint is ``relative = match_from_query`` as a 4x4 ``[s R, t; 0, 1]`` (a query-camera point
 X maps to s R X + t in the match camera), which is what ``PoseGraphBackend.add_loop(match, query,
@@ -359,11 +359,13 @@ class PycolmapVerifier:
         return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance, correspondences)
 
     def _scene_agreement(self, query: Keyframe, match: Keyframe, relative: np.ndarray) -> tuple[int, int]:
-        """(found, in view): the match's map points that ``relative`` (match_from_query Sim(3))
-        puts in the query's image, and how many of them have a query keypoint within
+        """(found, in view): the match's map points (off walking people) that ``relative``
+        (match_from_query Sim(3)) puts in the query's image, and how many of them have a query keypoint within
         ``max_reprojection_error_px`` whose descriptor is within ``max_hamming`` bits."""
         assert match.points3d is not None
-        mapped = np.flatnonzero(np.isfinite(match.points3d).all(axis=1))
+        # Points on walking people are not expected to be where the place puts them.
+        kept = _unmasked(match, self.config.ignore_labels)
+        mapped = kept[np.isfinite(match.points3d[kept]).all(axis=1)]
         query_from_match = np.linalg.inv(relative)
         in_query = match.points3d[mapped] @ query_from_match[:3, :3].T + query_from_match[:3, 3]
         # Points behind the camera project to NaN, which is never in view.
