@@ -330,6 +330,16 @@ class PycolmapVerifier:
         relative = np.eye(4)
         relative[:3, :3] = scale * match_from_query[:3, :3]
         relative[:3, 3] = match_from_query[:3, 3]
+        found, in_view = self._scene_agreement(query, match, relative)
+        if found < config.min_scene_share * in_view:
+            return Verification(
+                *ids,
+                False,
+                f"{found} of the match's {in_view} map points in the query's view find a keypoint there "
+                f"(need share {config.min_scene_share}): only the matched part of the scene agrees",
+                matches,
+                inliers,
+            )
         # Two maps of a place that disagree in depth (a drifted revisit) give a translation no better
         # than their disagreement: the median squared 3D residual, per axis
         # (docs/2026-12-07-sim3-reprojection.md).
@@ -345,16 +355,6 @@ class PycolmapVerifier:
             max(_log_scale_variance(source[good], target[good]), config.min_log_scale_sigma**2),
         )
         covariance = np.diag(np.repeat(variances, (3, 3, 1)))
-        found, in_view = self._scene_agreement(query, match, relative)
-        if found < config.min_scene_share * in_view:
-            return Verification(
-                *ids,
-                False,
-                f"{found} of the match's {in_view} map points in the query's view find a keypoint there "
-                f"(need share {config.min_scene_share}): only the matched part of the scene agrees",
-                matches,
-                inliers,
-            )
         correspondences = both[good][pnp_inliers]
         return Verification(*ids, True, "", matches, int(good.sum()), relative, covariance, correspondences)
 
@@ -376,17 +376,14 @@ class PycolmapVerifier:
         )  # fmt: skip
         if not seen.any() or len(query.keypoints) == 0:
             return 0, int(seen.sum())
-        near = cKDTree(np.asarray(query.keypoints, dtype=np.float64)).query_ball_point(
-            pixels[seen], self.config.max_reprojection_error_px
+        pairs = cKDTree(pixels[seen]).sparse_distance_matrix(
+            cKDTree(np.asarray(query.keypoints, dtype=np.float64)),
+            self.config.max_reprojection_error_px,
+            output_type="ndarray",
         )
-        counts = np.array([len(n) for n in near], dtype=np.int64)
-        owner = np.repeat(np.arange(len(near)), counts)
-        if len(owner) == 0:
-            return 0, int(seen.sum())
-        candidates = np.concatenate([np.asarray(n, dtype=np.int64) for n in near if n])
-        distance = hamming(match.descriptors[mapped[seen][owner]], query.descriptors[candidates])
-        found = np.unique(owner[distance <= self.config.max_hamming])
-        return len(found), int(seen.sum())
+        point, keypoint = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        distance = hamming(match.descriptors[mapped[seen][point]], query.descriptors[keypoint])
+        return len(np.unique(point[distance <= self.config.max_hamming])), int(seen.sum())
 
     def _reprojected(
         self,
