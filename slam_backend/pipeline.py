@@ -23,7 +23,9 @@ Per keyframe: objects (the object detector sees the keyframe's image; a failing 
 keyframe its objects, logged and counted), loop candidates (a failing detector costs the query its
 candidates), verification of the best ``max_verifications`` candidates at or above the detector's
 threshold (a raising verifier counts as a rejection with the error as reason; one that takes longer
-than ``verify_timeout_s`` as a rejection with reason "timeout ..."), and one backend event
+than ``verify_timeout_s`` as a rejection with reason "timeout ..."; a candidate whose match is
+covisible with a better candidate's that was verified or recognised the place is not verified, as
+ORB-SLAM stops at its first Sim(3): docs/2026-12-07-covisible-candidates.md), and one backend event
 with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
 the final decision; ``loops()`` reports the current decision of every candidate.
 Verification runs on a worker thread while the frontend tracks the next frames
@@ -116,6 +118,8 @@ log = logging.getLogger(__name__)
 class LoopClosingConfig:
     #: Candidates (best first) verified per query keyframe.
     max_verifications: int = 2
+    #: Verify candidates sharing defer_min_shared_points with a better one that recognised the place
+    verify_covisible_candidates: bool = False
     #: Verify candidates scoring this share of the detector's threshold, unless it has a proposal_threshold.
     proposal_ratio: float = 0.5
     #: Rotation sigma (rad) of the loose step linking a new map segment to the previous keyframe.
@@ -291,16 +295,34 @@ class _Pending:
     worker: threading.Thread | None = None
     #: ``verify_timeout_s``: how long a checkpoint waits for each job still running.
     budget: float = 30.0
+    #: Per chosen candidate: (better candidate's position, map points their matches share) for each
+    #: better one covisible with it; such a candidate is skipped once one of those recognised the place.
+    covisible: list[tuple[tuple[int, int], ...]] = field(default_factory=list)
 
     def run(self, verifier: Verifier) -> None:
-        for query, match in self.jobs:
+        for position, (query, match) in enumerate(self.jobs):
             start = time.perf_counter()
+            skip = self._skip(position)
             try:
-                outcome: Verification | Exception = verifier.verify(query, match)
+                outcome: Verification | Exception = skip or verifier.verify(query, match)
             except Exception as exc:  # handed to the pipeline's plugin boundary
                 outcome = exc
             self.seconds.append(time.perf_counter() - start)
             self.results.append(outcome)
+
+    def _skip(self, position: int) -> Verification | None:
+        """The rejection of a chosen candidate whose match is covisible with a better candidate's
+        that was verified or recognised the place: the same place seen from a neighbouring keyframe
+        adds nothing to that answer. On a drifted revisit every such candidate fails like the better
+        one, at the cost of a whole verification (docs/2026-12-07-covisible-candidates.md)."""
+        for better, shared in self.covisible[position] if position < len(self.covisible) else ():
+            earlier = self.results[better]
+            if not isinstance(earlier, Verification) or not (why := _recognised(earlier)):
+                continue
+            query, match = self.jobs[position]
+            reason = f"shares {shared} map points with keyframe {earlier.match}, whose candidate {why}"
+            return Verification(query.id, match.id, False, f"not verified: {reason}")
+        return None
 
     def wait(self) -> bool:
         """Wait for the worker while each job answers within ``budget``; whether it is stuck."""
@@ -395,6 +417,16 @@ def _thin_map(verification: Verification) -> _ThinMap | None:
 
 def _deferred_reason(deferral: _Deferral) -> str:
     return f"deferred: {deferral.reason}" + (f"; {deferral.last}" if deferral.last else "")
+
+
+def _recognised(verification: Verification) -> str:
+    """How a verification recognised its place ("" if it did not): verified, or the images agree
+    and only the maps fail (they disagree there, or are thin there)."""
+    if verification.verified:
+        return "was verified"
+    if verification.maps_disagree:
+        return "found maps that disagree there"
+    return "found the map thin there" if verification.thin_map else ""
 
 
 def _shared_points(first: Keyframe, second: Keyframe) -> int:
@@ -886,6 +918,8 @@ class LoopClosing:
         jobs = [(self._job_copy(keyframe), self._job_copy(self._keyframes[c.match])) for c in chosen]
         jobs += [(self._job_copy(query), self._job_copy(self._keyframes[c.match])) for query, c, _ in retries]
         pending = _Pending(keyframe, chosen, retries, closed, jobs, budget=self.config.verify_timeout_s)
+        if not self.config.verify_covisible_candidates:
+            pending.covisible = self._covisible_candidates(chosen)
         if not jobs or self.verifier is None:
             return pending
         late = self._late_verification
@@ -901,6 +935,16 @@ class LoopClosing:
         )
         pending.worker.start()
         return pending
+
+    def _covisible_candidates(self, chosen: list[LoopCandidate]) -> list[tuple[tuple[int, int], ...]]:
+        """Per chosen candidate, the better ones whose match shares at least
+        ``defer_min_shared_points`` map points with its match: (position, shared points)."""
+        matches = [self._keyframes[c.match] for c in chosen]
+        covisible = []
+        for position, match in enumerate(matches):
+            shared = ((k, _shared_points(better, match)) for k, better in enumerate(matches[:position]))
+            covisible.append(tuple((k, n) for k, n in shared if n >= self.config.defer_min_shared_points))
+        return covisible
 
     def _pending_verifications(self, pending: _Pending) -> list[Verification]:
         """Wait for the worker (each job within ``verify_timeout_s``) and turn its answers into

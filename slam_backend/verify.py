@@ -75,6 +75,9 @@ class Verification:
     thin_map: bool = False
     #: The two-view stage's result when ``thin_map`` (what ``LoopClosing`` can join segments with).
     two_view: TwoViewVerification | None = field(default=None, repr=False, compare=False)
+    #: The images agree and enough epipolar inliers have map points in both keyframes, but too few
+    #: of those fit one Sim(3): mostly a revisit on maps that drifted apart there.
+    maps_disagree: bool = False
 
     @property
     def scale(self) -> float:
@@ -319,6 +322,7 @@ class PycolmapVerifier:
                 f"(need {config.min_points} and ratio {config.min_point_inlier_ratio})",
                 matches,
                 inliers,
+                maps_disagree=True,
             )
         scale = float(transform.scale)
         pnp = self._pnp(query, target[good], both[good, 0])

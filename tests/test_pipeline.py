@@ -40,6 +40,7 @@ from lcd.base import LoopCandidate
 from lcd.symbiolcd2 import create as create_symbiolcd2
 from slam_backend.pipeline import LoopClosing, LoopClosingConfig, LoopRecord
 from slam_backend.posegraph import BackendConfig, GtsamPoseGraph
+from slam_backend.verify import Verification
 from slam_backend.verify import create as create_verifier
 
 KEYFRAME_EVERY = 6
@@ -440,3 +441,83 @@ def test_a_false_loop_is_a_constraint_that_contradicts_the_gt_poses() -> None:
     only_poses = loop_truth(_GroundTruth(poses, None), loops, keyframes, 0)  # type: ignore[arg-type]
     assert only_poses["false_loops_accepted"] == 1 and only_poses["loops_outside_gt_band"] is None
     assert loop_truth(_GroundTruth(None, None), loops, keyframes, 0)["false_loops_accepted"] is None  # type: ignore[arg-type]
+
+
+class ThreeCandidates:
+    """Proposes, for every keyframe from the 12th, the keyframes 12 and 11 back (neighbours: they
+    share map points) and 6 back (no point in common with either), best first."""
+
+    name = "three-candidates"
+    threshold = 0.5
+
+    def add(self, keyframe: Keyframe) -> list[LoopCandidate]:
+        if keyframe.id < 12:
+            return []
+        return [
+            LoopCandidate(keyframe.id, keyframe.id - back, 10.0 - k, {}) for k, back in enumerate((12, 11, 6))
+        ]
+
+
+class ScriptedVerifier:
+    """Answers every candidate with ``first`` when its match is 12 keyframes back, else with an
+    epipolar rejection; records which pairs it was asked about."""
+
+    name = "scripted"
+
+    def __init__(self, first: dict[str, object]) -> None:
+        self.first = first
+        self.asked: list[tuple[int, int]] = []
+
+    def verify(self, query: Keyframe, match: Keyframe) -> Verification:
+        self.asked.append((query.id, match.id))
+        if query.id - match.id == 12:
+            return Verification(query.id, match.id, False, "scripted", **self.first)  # type: ignore[arg-type]
+        return Verification(query.id, match.id, False, "3 epipolar inliers of 40 matches")
+
+
+@pytest.mark.parametrize(
+    ("first", "covisible_verified"),
+    [
+        ({"maps_disagree": True, "inliers": 300}, False),  # the place is recognised, on drifted maps
+        ({"inliers": 3}, True),  # the best candidate failed as a wrong place would: try its neighbour
+    ],
+)
+def test_a_candidate_covisible_with_one_that_recognised_the_place_is_not_verified(
+    loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
+    first: dict[str, object],
+    covisible_verified: bool,
+) -> None:
+    # Keyframe k observes map points 10k .. 10k + 39: neighbours share 30, keyframes 4 apart none.
+    keyframes = [
+        replace(k, image=None, point_ids=np.arange(10 * k.id, 10 * k.id + 40)) for k in loop_run[2][:20]
+    ]
+    asked, records = {}, {}
+    for verify_covisible in (False, True):
+        verifier = ScriptedVerifier(first)
+        config = LoopClosingConfig(
+            max_verifications=3, verify_covisible_candidates=verify_covisible, defer_retries=0
+        )
+        closing = LoopClosing(GtsamPoseGraph(BackendConfig()), ThreeCandidates(), None, verifier, config)  # type: ignore[arg-type]
+        for keyframe in keyframes:
+            closing.add(
+                TrackResult(keyframe.frame_index, keyframe.timestamp, "tracking", keyframe.pose, 0, keyframe)
+            )
+        closing.finish()
+        asked[verify_covisible] = set(verifier.asked)
+        records[verify_covisible] = {(r.query, r.match): r for r in closing.loops()}
+    queries = {q for q, _ in asked[True]}
+    assert len(queries) >= 5
+    # With the option on, every candidate is verified.
+    assert asked[True] == {(q, q - back) for q in queries for back in (12, 11, 6)}
+    # By default the neighbour of a best candidate that recognised the place is not; the candidate
+    # elsewhere (no shared point) always is.
+    expected = {(q, q - back) for q in queries for back in ((12, 11, 6) if covisible_verified else (12, 6))}
+    assert asked[False] == expected
+    if not covisible_verified:
+        q = min(queries)
+        skipped = records[False][(q, q - 11)]
+        assert not skipped.verified
+        assert skipped.reason == (
+            f"not verified: shares 30 map points with keyframe {q - 12}, "
+            "whose candidate found maps that disagree there"
+        )

@@ -93,10 +93,24 @@ def test_a_revisit_on_a_noisy_map_is_judged_in_the_images(
     assert result.covariance[3, 3] > 1.5 * exact.covariance[3, 3]
 
 
+def test_maps_bent_apart_are_told_from_a_wrong_place(renderer: SceneRenderer, verifier: Verifier) -> None:
+    """A revisit whose map is bent (depth off by -40 % to +40 % across the image, no similarity
+    undoes that) is rejected as maps that disagree: the images match, the maps do not. ``LoopClosing``
+    then leaves the neighbouring candidates of that place unverified."""
+    match, query = keyframe_with_depth(renderer, 6, 0), keyframe_with_depth(renderer, 630, 1)
+    assert query.points3d is not None
+    bend = 1 + 0.8 * (query.keypoints[:, 0] / renderer.config.width - 0.5)
+    bent = verifier.verify(dataclasses.replace(query, points3d=query.points3d * bend[:, None]), match)
+    assert not bent.verified and bent.maps_disagree, bent.reason
+    assert "reproject through the Sim(3)" in bent.reason and bent.inliers >= 100
+    assert not verifier.verify(query, match).maps_disagree
+
+
 def test_different_places_are_rejected_with_a_reason(renderer: SceneRenderer, verifier: Verifier) -> None:
     match, elsewhere = keyframe_with_depth(renderer, 6, 0), keyframe_with_depth(renderer, 300, 1)
     result = verifier.verify(elsewhere, match)
     assert not result.verified and result.relative is None and result.reason
+    assert not result.maps_disagree
 
 
 def test_degenerate_keyframes(renderer: SceneRenderer, verifier: Verifier) -> None:
