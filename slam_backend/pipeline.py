@@ -24,8 +24,8 @@ keyframe its objects, logged and counted), loop candidates (a failing detector c
 candidates), verification of the best ``max_verifications`` candidates at or above the detector's
 threshold (a raising verifier counts as a rejection with the error as reason; one that takes longer
 than ``verify_timeout_s`` as a rejection with reason "timeout ..."; a candidate whose match is
-covisible with a better candidate's that was verified or recognised the place is not verified, as
-ORB-SLAM stops at its first Sim(3): docs/2026-12-07-covisible-candidates.md), and one backend event
+covisible with a better candidate's that failed on the maps alone is not verified:
+docs/2026-12-07-covisible-candidates.md), and one backend event
 with every verified loop of the query. The backend's outlier rejection (PCM + GNC by default) makes
 the final decision; ``loops()`` reports the current decision of every candidate.
 Verification runs on a worker thread while the frontend tracks the next frames
@@ -118,7 +118,7 @@ log = logging.getLogger(__name__)
 class LoopClosingConfig:
     #: Candidates (best first) verified per query keyframe.
     max_verifications: int = 2
-    #: Verify candidates sharing defer_min_shared_points with a better one that recognised the place
+    #: Verify candidates sharing defer_min_shared_points with a better one that failed on the maps alone
     verify_covisible_candidates: bool = False
     #: Verify candidates scoring this share of the detector's threshold, unless it has a proposal_threshold.
     proposal_ratio: float = 0.5
@@ -296,7 +296,7 @@ class _Pending:
     #: ``verify_timeout_s``: how long a checkpoint waits for each job still running.
     budget: float = 30.0
     #: Per chosen candidate: (better candidate's position, map points their matches share) for each
-    #: better one covisible with it; such a candidate is skipped once one of those recognised the place.
+    #: better one covisible with it; such a candidate is skipped once one of those failed on the maps.
     covisible: list[tuple[tuple[int, int], ...]] = field(default_factory=list)
 
     def run(self, verifier: Verifier) -> None:
@@ -312,12 +312,12 @@ class _Pending:
 
     def _skip(self, position: int) -> Verification | None:
         """The rejection of a chosen candidate whose match is covisible with a better candidate's
-        that was verified or recognised the place: the same place seen from a neighbouring keyframe
-        adds nothing to that answer. On a drifted revisit every such candidate fails like the better
-        one, at the cost of a whole verification (docs/2026-12-07-covisible-candidates.md)."""
+        that failed on the maps alone (its images agree): the query's map meets nearly the same
+        points there and fails the same way. On a drifted revisit that is every keyframe's second
+        candidate, each at the cost of a whole verification (docs/2026-12-07-covisible-candidates.md)."""
         for better, shared in self.covisible[position] if position < len(self.covisible) else ():
             earlier = self.results[better]
-            if not isinstance(earlier, Verification) or not (why := _recognised(earlier)):
+            if not isinstance(earlier, Verification) or not (why := _maps_failed(earlier)):
                 continue
             query, match = self.jobs[position]
             reason = f"shares {shared} map points with keyframe {earlier.match}, whose candidate {why}"
@@ -419,11 +419,9 @@ def _deferred_reason(deferral: _Deferral) -> str:
     return f"deferred: {deferral.reason}" + (f"; {deferral.last}" if deferral.last else "")
 
 
-def _recognised(verification: Verification) -> str:
-    """How a verification recognised its place ("" if it did not): verified, or the images agree
-    and only the maps fail (they disagree there, or are thin there)."""
-    if verification.verified:
-        return "was verified"
+def _maps_failed(verification: Verification) -> str:
+    """How a verification failed on the maps alone ("" if it did not): its images agree, but the
+    two maps disagree there, or the map is thin there."""
     if verification.maps_disagree:
         return "found maps that disagree there"
     return "found the map thin there" if verification.thin_map else ""

@@ -478,11 +478,14 @@ class ScriptedVerifier:
 @pytest.mark.parametrize(
     ("first", "covisible_verified"),
     [
-        ({"maps_disagree": True, "inliers": 300}, False),  # the place is recognised, on drifted maps
+        ({"maps_disagree": True, "inliers": 300}, False),  # the images agree, the drifted maps do not
+        ({"thin_map": True, "inliers": 60}, False),  # the images agree, too few have map points
         ({"inliers": 3}, True),  # the best candidate failed as a wrong place would: try its neighbour
+        # A verified loop: its neighbour may add a second constraint.
+        ({"verified": True, "relative": np.eye(4), "covariance": 1e-4 * np.eye(7), "inliers": 300}, True),
     ],
 )
-def test_a_candidate_covisible_with_one_that_recognised_the_place_is_not_verified(
+def test_a_candidate_covisible_with_one_that_failed_on_the_maps_is_not_verified(
     loop_run: tuple[LoopClosing, list[np.ndarray], list[Keyframe]],
     first: dict[str, object],
     covisible_verified: bool,
@@ -509,15 +512,16 @@ def test_a_candidate_covisible_with_one_that_recognised_the_place_is_not_verifie
     assert len(queries) >= 5
     # With the option on, every candidate is verified.
     assert asked[True] == {(q, q - back) for q in queries for back in (12, 11, 6)}
-    # By default the neighbour of a best candidate that recognised the place is not; the candidate
-    # elsewhere (no shared point) always is.
+    # By default the neighbour of a best candidate that failed on the maps alone is not; the
+    # candidate elsewhere (no shared point) always is.
     expected = {(q, q - back) for q in queries for back in ((12, 11, 6) if covisible_verified else (12, 6))}
     assert asked[False] == expected
     if not covisible_verified:
         q = min(queries)
         skipped = records[False][(q, q - 11)]
         assert not skipped.verified
-        assert skipped.reason == (
-            f"not verified: shares 30 map points with keyframe {q - 12}, "
-            "whose candidate found maps that disagree there"
+        why = "maps that disagree there" if first.get("maps_disagree") else "the map thin there"
+        assert (
+            skipped.reason
+            == f"not verified: shares 30 map points with keyframe {q - 12}, whose candidate found {why}"
         )
